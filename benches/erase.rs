@@ -1,0 +1,123 @@
+//! Per-stage timings and peak memory of the seam engine on the 2048² models.
+//!
+//! `cargo bench --bench erase` prints one row per (model, mode). Each row runs
+//! in a child process of its own, so "peak MB" (the kernel's high-water mark
+//! of resident memory, VmHWM) belongs to that run alone.
+
+use std::path::PathBuf;
+use std::process::Command;
+use std::time::Instant;
+
+use seamstress::model::{self, LoadOptions};
+use seamstress::pipeline::{self, Format, Method, ProcessOptions};
+use seamstress::seam::erase::Mode;
+
+const MODELS: [&str; 2] = ["blub/blub.glb", "Fox/Fox.gltf"];
+
+fn asset(rel: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../shared/assets")
+        .join(rel)
+}
+
+fn peak_rss_mb() -> f64 {
+    let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmHWM:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<f64>().ok())
+        .map_or(f64::NAN, |kb| kb / 1024.0)
+}
+
+/// Runs one model in this process and prints one tab-separated line.
+fn child(rel: &str, mode: Mode) {
+    let t = Instant::now();
+    let m = match model::load(&asset(rel), &LoadOptions::default()) {
+        Ok(m) => m,
+        Err(e) => {
+            println!("ERR\t{e}");
+            return;
+        }
+    };
+    let load_ms = t.elapsed().as_millis() as u64;
+    let opts = ProcessOptions {
+        mode,
+        method: Method::Erase,
+        format: Format::Png,
+        ..ProcessOptions::default()
+    };
+    let t = Instant::now();
+    let out = match pipeline::run(&m, rel, load_ms, &opts) {
+        Ok(o) => o,
+        Err(e) => {
+            println!("ERR\t{e}");
+            return;
+        }
+    };
+    let total_ms = t.elapsed().as_millis();
+    let r = &out.report.textures[0];
+    println!(
+        "OK\t{}\t{}\t{}\t{}\t{}\t{:.1}\t{}\t{:.3}\t{:.3}\t{:.2}",
+        r.timings_ms.load,
+        r.timings_ms.seams,
+        r.timings_ms.erase,
+        total_ms,
+        r.solver.unknowns,
+        peak_rss_mb(),
+        r.solver.band_radius.map_or("-".into(), |b| b.to_string()),
+        r.input.seam_rms.unwrap_or(f64::NAN),
+        r.erased.seam_rms.unwrap_or(f64::NAN),
+        r.erased.psnr.unwrap_or(f64::NAN),
+    );
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    if let Some(i) = args.iter().position(|a| a == "--child") {
+        let mode = if args[i + 2] == "global" {
+            Mode::Global
+        } else {
+            Mode::Local
+        };
+        child(&args[i + 1], mode);
+        return;
+    }
+    let exe = std::env::current_exe().expect("own path");
+    println!(
+        "{:<16} {:<6} {:>7} {:>8} {:>9} {:>9} {:>10} {:>7} {:>8} {:>9} {:>10} {:>8}",
+        "model",
+        "mode",
+        "load ms",
+        "seams ms",
+        "erase ms",
+        "total ms",
+        "unknowns",
+        "band",
+        "peak MB",
+        "input rms",
+        "erased rms",
+        "psnr dB"
+    );
+    for rel in MODELS {
+        for mode in ["local", "global"] {
+            let out = Command::new(&exe)
+                .args(["--child", rel, mode])
+                .output()
+                .expect("child runs");
+            let text = String::from_utf8_lossy(&out.stdout);
+            let line = text
+                .lines()
+                .find(|l| l.starts_with("OK") || l.starts_with("ERR"));
+            let name = rel.rsplit('/').next().unwrap_or(rel);
+            match line.map(|l| l.split('\t').collect::<Vec<_>>()) {
+                Some(f) if f[0] == "OK" && f.len() == 11 => println!(
+                    "{:<16} {:<6} {:>7} {:>8} {:>9} {:>9} {:>10} {:>7} {:>8} {:>9} {:>10} {:>8}",
+                    name, mode, f[1], f[2], f[3], f[4], f[5], f[7], f[6], f[8], f[9], f[10]
+                ),
+                other => println!("{name:<16} {mode:<6} failed: {other:?}"),
+            }
+        }
+    }
+    println!("\nerase: seam erasure incl. the solve; peak MB: VmHWM of the child process.");
+    println!("Goals (local mode, 2048²): erase < 1000 ms, peak < 1024 MB.");
+}

@@ -1,0 +1,187 @@
+//! The `seamstress` command line: `process` runs the engine on one model.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::Instant;
+
+use anyhow::Context;
+use clap::{Parser, Subcommand};
+
+use seamstress::bc1::Level;
+use seamstress::model::{self, LoadOptions};
+use seamstress::pipeline::{self, Format, Method, ProcessOptions, DEFAULT_SEAM_WEIGHT};
+use seamstress::seam::erase::Mode;
+
+#[derive(Parser)]
+#[command(name = "seamstress", version, about = "Seam erasure for glTF textures")]
+struct Cli {
+    /// Log format on standard error.
+    #[arg(long, global = true, value_enum, default_value = "text")]
+    log_format: LogFormat,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum LogFormat {
+    Text,
+    Json,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Erase the seams of every colour texture of a model and encode it to BC1.
+    Process(ProcessArgs),
+    /// Run the HTTP service: a durable job queue and a worker pool over the engine.
+    Serve(seamstress::service::ServeArgs),
+}
+
+#[derive(clap::Args)]
+struct ProcessArgs {
+    /// A .glb, or a .gltf with its files beside it.
+    input: PathBuf,
+    /// Folder for the outputs (created if missing).
+    #[arg(long)]
+    out: PathBuf,
+    #[arg(long, value_enum, default_value = "local")]
+    mode: Mode,
+    #[arg(long, value_enum, default_value = "erase")]
+    method: Method,
+    /// dds: a BC1 DDS per texture besides the erased PNG; png: the erased PNG only.
+    #[arg(long, value_enum, default_value = "dds")]
+    format: Format,
+    /// BC1 encoder effort: fast, default or best.
+    #[arg(long, default_value = "default")]
+    bc1_level: Level,
+    /// Store the regular BC1 encoding instead of the seam-aware one.
+    #[arg(long)]
+    no_seam_aware: bool,
+    /// α: how much seam agreement weighs against fidelity in seam-aware BC1.
+    #[arg(long, default_value_t = DEFAULT_SEAM_WEIGHT)]
+    seam_weight: f64,
+    /// Write the full mip chain, each level erased and encoded on its own.
+    #[arg(long)]
+    mips: bool,
+    /// Write the DX10 header (BC1_UNORM, or BC1_UNORM_SRGB for colour textures).
+    #[arg(long)]
+    dx10: bool,
+    /// Refuse textures wider or taller than this, before decoding them.
+    #[arg(long, default_value_t = 16384)]
+    max_texture_size: u32,
+    /// Also process occlusion and metallic-roughness textures.
+    #[arg(long)]
+    extra_maps: bool,
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    init_logging(cli.log_format);
+    match cli.command {
+        Command::Process(args) => match process(&args) {
+            Ok(()) => ExitCode::SUCCESS,
+            Err(Failure::BadInput(msg)) => {
+                eprintln!("error: {msg}");
+                ExitCode::from(2)
+            }
+            Err(Failure::Internal(e)) => {
+                eprintln!("error: {e:#}");
+                ExitCode::from(1)
+            }
+        },
+        Command::Serve(args) => match seamstress::service::serve(args) {
+            Ok(()) => ExitCode::SUCCESS,
+            Err(e) => {
+                eprintln!("error: {e}");
+                ExitCode::from(1)
+            }
+        },
+    }
+}
+
+fn init_logging(format: LogFormat) {
+    let filter = tracing_subscriber::EnvFilter::try_from_env("SEAMSTRESS_LOG")
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn"));
+    let builder = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr);
+    match format {
+        LogFormat::Text => builder.init(),
+        LogFormat::Json => builder.json().init(),
+    }
+}
+
+enum Failure {
+    /// Exit status 2: the input is at fault; one line that names it.
+    BadInput(String),
+    /// Exit status 1: something failed that the input cannot fix.
+    Internal(anyhow::Error),
+}
+
+impl From<anyhow::Error> for Failure {
+    fn from(e: anyhow::Error) -> Self {
+        Failure::Internal(e)
+    }
+}
+
+fn process(args: &ProcessArgs) -> Result<(), Failure> {
+    let load_opts = LoadOptions {
+        max_texture_size: args.max_texture_size,
+        extra_maps: args.extra_maps,
+        ..LoadOptions::default()
+    };
+    let t = Instant::now();
+    let model = match model::load(&args.input, &load_opts) {
+        Ok(m) => m,
+        Err(e) if e.is_bad_input() => return Err(Failure::BadInput(e.to_string())),
+        Err(e) => return Err(Failure::Internal(e.into())),
+    };
+    let load_ms = t.elapsed().as_millis() as u64;
+    if !(args.seam_weight.is_finite() && args.seam_weight >= 0.0) {
+        return Err(Failure::BadInput(format!(
+            "--seam-weight must be a non-negative number, not {}",
+            args.seam_weight
+        )));
+    }
+    let opts = ProcessOptions {
+        mode: args.mode,
+        method: args.method,
+        format: args.format,
+        bc1_level: args.bc1_level,
+        seam_aware: !args.no_seam_aware,
+        seam_weight: args.seam_weight,
+        mips: args.mips,
+        dx10: args.dx10,
+    };
+    let name = args
+        .input
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let output = pipeline::run(&model, &name, load_ms, &opts).context("processing failed")?;
+
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("cannot create {}", args.out.display()))?;
+    for f in &output.files {
+        write_atomic(&args.out.join(&f.name), &f.bytes)?;
+    }
+    let mut json = serde_json::to_vec_pretty(&output.report).context("cannot serialise report")?;
+    json.push(b'\n');
+    write_atomic(&args.out.join("report.json"), &json)?;
+    std::io::stdout()
+        .write_all(&json)
+        .context("cannot write to standard output")?;
+    Ok(())
+}
+
+/// Writes to a temporary name, syncs, then renames, so a reader never sees half a file.
+fn write_atomic(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
+    let tmp = path.with_extension("tmp~");
+    let mut f =
+        std::fs::File::create(&tmp).with_context(|| format!("cannot create {}", tmp.display()))?;
+    f.write_all(bytes)
+        .and_then(|_| f.sync_all())
+        .with_context(|| format!("cannot write {}", tmp.display()))?;
+    std::fs::rename(&tmp, path).with_context(|| format!("cannot write {}", path.display()))?;
+    Ok(())
+}

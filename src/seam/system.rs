@@ -1,0 +1,214 @@
+//! Assembly of sparse symmetric positive-definite systems and their solve.
+//!
+//! Every energy here is a sum of weighted squares of linear functionals of the
+//! texels, so the system is assembled as outer products of "tap" rows; only
+//! the lower triangle is stored, and faer's supernodal Cholesky (with its
+//! default AMD fill-reducing ordering) factors it once for all channels.
+
+use faer::dyn_stack::{MemBuffer, MemStack};
+use faer::sparse::linalg::cholesky::{factorize_symbolic_cholesky, LltRef, SymbolicCholesky};
+use faer::sparse::{SparseColMat, Triplet};
+use faer::{Conj, Mat, MatMut, Par, Side};
+
+use super::grid::Tap;
+use super::twolevel::{self, Prolongation, Symmetric};
+
+#[derive(Debug, thiserror::Error)]
+pub enum SolveError {
+    #[error("sparse matrix assembly failed: {0}")]
+    Assembly(String),
+    #[error("the system is not positive definite ({0})")]
+    NotPositiveDefinite(String),
+    #[error("the iterative solve did not converge in {0} iterations")]
+    NotConverged(usize),
+}
+
+/// A system `A x = b` over `n` unknowns and `channels` right-hand sides,
+/// where texels map to unknowns through `unknown` (`u32::MAX`: fixed).
+pub struct SpdSystem<'a> {
+    unknown: &'a [u32],
+    n: usize,
+    channels: usize,
+    lower: Vec<Triplet<u32, u32, f64>>,
+    rhs: Vec<f64>,
+}
+
+impl<'a> SpdSystem<'a> {
+    pub fn new(unknown: &'a [u32], n: usize, channels: usize) -> Self {
+        SpdSystem {
+            unknown,
+            n,
+            channels,
+            lower: Vec::new(),
+            rhs: vec![0.0; n * channels],
+        }
+    }
+
+    pub fn unknowns(&self) -> usize {
+        self.n
+    }
+
+    #[inline]
+    pub fn unknown_of(&self, texel: u32) -> Option<u32> {
+        let u = self.unknown[texel as usize];
+        (u != u32::MAX).then_some(u)
+    }
+
+    /// Adds `weight · (Σ taps·p − target)²` for every channel, where texels
+    /// that are not unknowns are held at `fixed` (interleaved by channel).
+    /// `target` gives one value per channel; at most 16 distinct unknowns.
+    pub fn add_square(&mut self, weight: f64, taps: &[Tap], target: &[f64], fixed: &[f32]) {
+        let ch = self.channels;
+        let mut free: [(u32, f64); 16] = [(0, 0.0); 16];
+        let mut nfree = 0;
+        let mut offset = [0.0f64; 4];
+        offset[..ch].copy_from_slice(&target[..ch]);
+        for &(t, w) in taps {
+            if w == 0.0 {
+                continue;
+            }
+            match self.unknown_of(t) {
+                Some(u) => {
+                    if let Some(slot) = free[..nfree].iter_mut().find(|s| s.0 == u) {
+                        slot.1 += w;
+                    } else {
+                        free[nfree] = (u, w);
+                        nfree += 1;
+                    }
+                }
+                None => {
+                    for (c, o) in offset[..ch].iter_mut().enumerate() {
+                        *o -= w * f64::from(fixed[t as usize * ch + c]);
+                    }
+                }
+            }
+        }
+        for k in 0..nfree {
+            let (uk, wk) = free[k];
+            for &(ul, wl) in &free[..=k] {
+                let (r, c) = if uk >= ul { (uk, ul) } else { (ul, uk) };
+                self.lower.push(Triplet::new(r, c, weight * wk * wl));
+            }
+            for (c, o) in offset[..ch].iter().enumerate() {
+                self.rhs[uk as usize * ch + c] += weight * wk * o;
+            }
+        }
+    }
+
+    /// Adds `weight · (p_t − target)²` for one texel (a diagonal term).
+    pub fn add_anchor(&mut self, weight: f64, texel: u32, target: &[f64]) {
+        if let Some(u) = self.unknown_of(texel) {
+            self.lower.push(Triplet::new(u, u, weight));
+            let ch = self.channels;
+            let rhs = &mut self.rhs[u as usize * ch..(u as usize + 1) * ch];
+            for (b, t) in rhs.iter_mut().zip(target) {
+                *b += weight * t;
+            }
+        }
+    }
+
+    /// Solves by two-level preconditioned CG (see [`super::twolevel`]); returns
+    /// `x` interleaved by channel and the iteration count.
+    pub fn solve_iterative(self, coarse: &Prolongation) -> Result<(Vec<f64>, usize), SolveError> {
+        let t = std::time::Instant::now();
+        let a = Symmetric::from_lower(self.n, &self.lower)?;
+        drop(self.lower);
+        let r = twolevel::solve(&a, &self.rhs, self.channels, coarse)?;
+        tracing::debug!(
+            unknowns = self.n,
+            coarse = coarse.coarse,
+            iterations = r.1,
+            ms = t.elapsed().as_millis() as u64,
+            "iterative solve"
+        );
+        Ok(r)
+    }
+
+    /// Factors once and solves for all channels; returns `x` interleaved by channel.
+    pub fn solve(self) -> Result<Vec<f64>, SolveError> {
+        let (n, ch) = (self.n, self.channels);
+        if n == 0 {
+            return Ok(Vec::new());
+        }
+        let t = std::time::Instant::now();
+        let a = SparseColMat::<u32, f64>::try_new_from_triplets(n, n, &self.lower)
+            .map_err(|e| SolveError::Assembly(format!("{e:?}")))?;
+        let assembled = t.elapsed();
+        drop(self.lower);
+        let llt = Cholesky::new(&a)?;
+        let factored = t.elapsed();
+        let mut b = Mat::<f64>::from_fn(n, ch, |i, c| self.rhs[i * ch + c]);
+        llt.solve_in_place(b.as_mut());
+        tracing::debug!(
+            unknowns = n,
+            nonzeros = a.compute_nnz(),
+            factor_nonzeros = llt.factor.len(),
+            assemble_ms = assembled.as_millis() as u64,
+            factor_ms = (factored - assembled).as_millis() as u64,
+            solve_ms = (t.elapsed() - factored).as_millis() as u64,
+            "sparse solve"
+        );
+        let mut x = vec![0.0; n * ch];
+        for i in 0..n {
+            for c in 0..ch {
+                x[i * ch + c] = b[(i, c)];
+            }
+        }
+        Ok(x)
+    }
+}
+
+/// A sparse Cholesky factor LLᵀ = PAPᵀ (AMD ordering; supernodal or
+/// simplicial, as faer judges from the fill).
+pub struct Cholesky {
+    symbolic: SymbolicCholesky<u32>,
+    factor: Vec<f64>,
+}
+
+impl Cholesky {
+    /// Factors the lower triangle of `a`.
+    pub fn new(a: &SparseColMat<u32, f64>) -> Result<Self, SolveError> {
+        let err = |e: &dyn std::fmt::Debug| SolveError::Assembly(format!("{e:?}"));
+        let symbolic = factorize_symbolic_cholesky(
+            a.symbolic(),
+            Side::Lower,
+            Default::default(),
+            Default::default(),
+        )
+        .map_err(|e| err(&e))?;
+        let mut factor = vec![0.0; symbolic.len_val()];
+        let par = Par::rayon(0);
+        let mut mem = MemBuffer::try_new(
+            symbolic.factorize_numeric_llt_scratch::<f64>(par, Default::default()),
+        )
+        .map_err(|e| err(&e))?;
+        symbolic
+            .factorize_numeric_llt(
+                &mut factor,
+                a.as_ref(),
+                Side::Lower,
+                Default::default(),
+                par,
+                MemStack::new(&mut mem),
+                Default::default(),
+            )
+            .map_err(|e| SolveError::NotPositiveDefinite(format!("{e:?}")))?;
+        Ok(Cholesky { symbolic, factor })
+    }
+
+    /// Overwrites `rhs` (one column per channel) with A⁻¹·rhs.
+    pub fn solve_in_place(&self, rhs: MatMut<'_, f64>) {
+        // Sequential: with a handful of right-hand sides the triangular solves
+        // are memory-bound, and forking per supernode costs more than it saves.
+        let mut mem = MemBuffer::new(
+            self.symbolic
+                .solve_in_place_scratch::<f64>(rhs.ncols(), Par::Seq),
+        );
+        LltRef::new(&self.symbolic, &self.factor).solve_in_place_with_conj(
+            Conj::No,
+            rhs,
+            Par::Seq,
+            MemStack::new(&mut mem),
+        );
+    }
+}

@@ -1,0 +1,96 @@
+//! What routes and workers share.
+
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicBool, AtomicU8, Ordering};
+use std::sync::{Arc, Mutex};
+
+use tokio::sync::{watch, Notify};
+
+use super::config::Config;
+use super::engine::Stop;
+use super::error::ApiError;
+use super::metrics::Metrics;
+use super::store::{FileStore, JobStore};
+
+/// Stop signals a running job reads between stages.
+pub const RUN: u8 = 0;
+pub const CANCELED: u8 = 1;
+pub const TIMED_OUT: u8 = 2;
+pub const SHUTTING_DOWN: u8 = 3;
+
+pub fn stop_of(flag: &AtomicU8) -> Option<Stop> {
+    match flag.load(Ordering::Acquire) {
+        CANCELED => Some(Stop::Canceled),
+        TIMED_OUT => Some(Stop::TimedOut),
+        SHUTTING_DOWN => Some(Stop::ShuttingDown),
+        _ => None,
+    }
+}
+
+pub struct App {
+    pub cfg: Config,
+    pub jobs: Arc<dyn JobStore>,
+    pub files: Arc<dyn FileStore>,
+    pub metrics: Metrics,
+    /// Bumped whenever a job reaches a final state; `Prefer: wait` listens.
+    pub finished: watch::Sender<u64>,
+    /// Wakes an idle worker when a job is queued.
+    pub work: Notify,
+    /// Set once on shutdown: stop accepting and claiming.
+    pub stopping: watch::Sender<bool>,
+    pub accepting: AtomicBool,
+    /// Stop flags of the jobs running in this process.
+    pub running: Mutex<HashMap<String, Arc<AtomicU8>>>,
+}
+
+pub type Shared = Arc<App>;
+
+impl App {
+    pub fn new(cfg: Config, jobs: Arc<dyn JobStore>, files: Arc<dyn FileStore>) -> App {
+        App {
+            cfg,
+            jobs,
+            files,
+            metrics: Metrics::default(),
+            finished: watch::channel(0).0,
+            work: Notify::new(),
+            stopping: watch::channel(false).0,
+            accepting: AtomicBool::new(true),
+            running: Mutex::new(HashMap::new()),
+        }
+    }
+
+    pub fn running(&self) -> std::sync::MutexGuard<'_, HashMap<String, Arc<AtomicU8>>> {
+        self.running.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Signals a job running here to stop at its next checkpoint.
+    pub fn signal(&self, id: &str, how: u8) {
+        if let Some(flag) = self.running().get(id) {
+            flag.store(how, Ordering::Release);
+        }
+    }
+
+    pub fn announce_finished(&self) {
+        self.finished.send_modify(|n| *n = n.wrapping_add(1));
+    }
+
+    pub fn is_stopping(&self) -> bool {
+        *self.stopping.borrow()
+    }
+}
+
+/// Runs store or file work on the blocking pool, off the async runtime.
+pub async fn blocking<T, F>(app: &Shared, f: F) -> Result<T, ApiError>
+where
+    T: Send + 'static,
+    F: FnOnce(&App) -> Result<T, ApiError> + Send + 'static,
+{
+    let app = app.clone();
+    tokio::task::spawn_blocking(move || f(&app))
+        .await
+        .map_err(|e| {
+            tracing::error!(error = %e, "blocking task failed");
+            ApiError::internal("an internal task failed")
+        })?
+}

@@ -1,0 +1,415 @@
+//! Configuration: flags, `SEAMSTRESS_*` environment variables and an
+//! optional TOML file, in that order of precedence, over built-in defaults.
+
+use std::net::{SocketAddr, ToSocketAddrs};
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use serde::Deserialize;
+use sha2::{Digest, Sha256};
+
+/// `seamstress serve`: every option is also an environment variable and a
+/// key of the `--config` file (same name, `_` for `-`).
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct ServeArgs {
+    /// Address to listen on; port 0 picks a free one [default: 127.0.0.1:8080].
+    #[arg(long, env = "SEAMSTRESS_LISTEN")]
+    pub listen: Option<String>,
+    /// Folder for the job database and the files [default: ./data].
+    #[arg(long, env = "SEAMSTRESS_DATA")]
+    pub data: Option<PathBuf>,
+    /// TOML file with any of these options.
+    #[arg(long, env = "SEAMSTRESS_CONFIG")]
+    pub config: Option<PathBuf>,
+    /// Jobs processed at once [default: the number of cores].
+    #[arg(long, env = "SEAMSTRESS_WORKERS")]
+    pub workers: Option<usize>,
+    /// Most jobs waiting for a worker; beyond it, submissions get 503 [default: 64].
+    #[arg(long, env = "SEAMSTRESS_QUEUE_SIZE")]
+    pub queue_size: Option<usize>,
+    /// Time limit of one job, e.g. 600s, 10m [default: 10m].
+    #[arg(long, env = "SEAMSTRESS_JOB_TIMEOUT")]
+    pub job_timeout: Option<String>,
+    /// How long finished jobs and their files are kept, e.g. 7d [default: 7d].
+    #[arg(long, env = "SEAMSTRESS_RETENTION")]
+    pub retention: Option<String>,
+    /// On SIGTERM, how long running jobs may take to finish before they are
+    /// re-queued [default: 30s].
+    #[arg(long, env = "SEAMSTRESS_GRACE")]
+    pub grace: Option<String>,
+    /// Largest request body, e.g. 512MiB [default: 512MiB].
+    #[arg(long, env = "SEAMSTRESS_MAX_BODY")]
+    pub max_body: Option<String>,
+    /// Largest texture width or height, checked before decoding [default: 16384].
+    #[arg(long, env = "SEAMSTRESS_MAX_TEXTURE_SIZE")]
+    pub max_texture_size: Option<u32>,
+    /// Longest `Prefer: wait=N` honoured [default: 10m].
+    #[arg(long, env = "SEAMSTRESS_MAX_WAIT")]
+    pub max_wait: Option<String>,
+    /// Bearer token as NAME:SECRET or SECRET; repeat for more (environment:
+    /// comma-separated). Each token sees only its own jobs.
+    #[arg(long = "token", env = "SEAMSTRESS_TOKENS", value_delimiter = ',')]
+    pub tokens: Vec<String>,
+    /// Allow listening beyond loopback without tokens.
+    #[arg(long, env = "SEAMSTRESS_INSECURE_OPEN")]
+    pub insecure_open: bool,
+}
+
+/// The configuration file: the same options as [`ServeArgs`].
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "snake_case")]
+struct FileConfig {
+    listen: Option<String>,
+    data: Option<PathBuf>,
+    workers: Option<usize>,
+    queue_size: Option<usize>,
+    job_timeout: Option<Quantity>,
+    retention: Option<Quantity>,
+    grace: Option<Quantity>,
+    max_body: Option<Quantity>,
+    max_texture_size: Option<u32>,
+    max_wait: Option<Quantity>,
+    tokens: Option<Vec<String>>,
+    insecure_open: Option<bool>,
+}
+
+/// A duration or size written as a bare number or with a unit.
+#[derive(Debug, Deserialize)]
+#[serde(untagged)]
+enum Quantity {
+    Number(u64),
+    Text(String),
+}
+
+impl Quantity {
+    fn text(&self) -> String {
+        match self {
+            Quantity::Number(n) => n.to_string(),
+            Quantity::Text(s) => s.clone(),
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("cannot read {path}: {source}")]
+    Read {
+        path: String,
+        source: std::io::Error,
+    },
+    #[error("{path}: {message}")]
+    File { path: String, message: String },
+    #[error("{option}: {message}")]
+    Invalid {
+        option: &'static str,
+        message: String,
+    },
+}
+
+/// A bearer token: the secret is kept only as its digest.
+#[derive(Clone, Debug)]
+pub struct Token {
+    /// Who owns the jobs submitted with it.
+    pub owner: String,
+    pub digest: [u8; 32],
+}
+
+/// Every setting resolved.
+#[derive(Clone, Debug)]
+pub struct Config {
+    pub listen: String,
+    pub data: PathBuf,
+    pub workers: usize,
+    pub queue_size: usize,
+    pub job_timeout: Duration,
+    pub retention: Duration,
+    pub grace: Duration,
+    pub max_body: usize,
+    pub max_texture_size: u32,
+    pub max_wait: Duration,
+    pub tokens: Vec<Token>,
+    pub insecure_open: bool,
+}
+
+impl Default for Config {
+    fn default() -> Self {
+        Config {
+            listen: "127.0.0.1:8080".into(),
+            data: PathBuf::from("data"),
+            workers: std::thread::available_parallelism().map_or(1, |n| n.get()),
+            queue_size: 64,
+            job_timeout: Duration::from_secs(600),
+            retention: Duration::from_secs(7 * 24 * 3600),
+            grace: Duration::from_secs(30),
+            max_body: 512 << 20,
+            max_texture_size: 16384,
+            max_wait: Duration::from_secs(600),
+            tokens: Vec::new(),
+            insecure_open: false,
+        }
+    }
+}
+
+impl Config {
+    /// Merges flags and environment (already in `args`, flags first) over
+    /// the file named by `--config`, over the defaults.
+    pub fn resolve(args: &ServeArgs) -> Result<Config, ConfigError> {
+        let file = match &args.config {
+            Some(path) => read_file(path)?,
+            None => FileConfig::default(),
+        };
+        let d = Config::default();
+        let duration =
+            |option: &'static str, flag: &Option<String>, file: &Option<Quantity>| match flag
+                .clone()
+                .or_else(|| file.as_ref().map(Quantity::text))
+            {
+                Some(text) => parse_duration(&text)
+                    .map(Some)
+                    .map_err(|message| ConfigError::Invalid { option, message }),
+                None => Ok(None),
+            };
+        let max_body = match args
+            .max_body
+            .clone()
+            .or_else(|| file.max_body.as_ref().map(Quantity::text))
+        {
+            Some(text) => parse_size(&text).map_err(|message| ConfigError::Invalid {
+                option: "max_body",
+                message,
+            })?,
+            None => d.max_body,
+        };
+        let token_specs = if args.tokens.is_empty() {
+            file.tokens.clone().unwrap_or_default()
+        } else {
+            args.tokens.clone()
+        };
+        let cfg = Config {
+            listen: args.listen.clone().or(file.listen).unwrap_or(d.listen),
+            data: args.data.clone().or(file.data).unwrap_or(d.data),
+            workers: args.workers.or(file.workers).unwrap_or(d.workers),
+            queue_size: args.queue_size.or(file.queue_size).unwrap_or(d.queue_size),
+            job_timeout: duration("job_timeout", &args.job_timeout, &file.job_timeout)?
+                .unwrap_or(d.job_timeout),
+            retention: duration("retention", &args.retention, &file.retention)?
+                .unwrap_or(d.retention),
+            grace: duration("grace", &args.grace, &file.grace)?.unwrap_or(d.grace),
+            max_body,
+            max_texture_size: args
+                .max_texture_size
+                .or(file.max_texture_size)
+                .unwrap_or(d.max_texture_size),
+            max_wait: duration("max_wait", &args.max_wait, &file.max_wait)?.unwrap_or(d.max_wait),
+            tokens: parse_tokens(&token_specs)?,
+            insecure_open: args.insecure_open || file.insecure_open.unwrap_or(false),
+        };
+        cfg.check()?;
+        Ok(cfg)
+    }
+
+    fn check(&self) -> Result<(), ConfigError> {
+        let invalid = |option, message: &str| ConfigError::Invalid {
+            option,
+            message: message.to_string(),
+        };
+        if self.workers == 0 {
+            return Err(invalid("workers", "must be at least 1"));
+        }
+        if self.queue_size == 0 {
+            return Err(invalid("queue_size", "must be at least 1"));
+        }
+        if self.max_texture_size == 0 {
+            return Err(invalid("max_texture_size", "must be at least 1"));
+        }
+        if self.job_timeout.is_zero() {
+            return Err(invalid("job_timeout", "must be positive"));
+        }
+        Ok(())
+    }
+
+    /// The addresses `listen` names, refusing to expose a server without
+    /// tokens beyond loopback unless `insecure_open` says so.
+    pub fn listen_addrs(&self) -> Result<Vec<SocketAddr>, ConfigError> {
+        let addrs: Vec<SocketAddr> = self
+            .listen
+            .to_socket_addrs()
+            .map_err(|e| ConfigError::Invalid {
+                option: "listen",
+                message: format!("{:?}: {e}", self.listen),
+            })?
+            .collect();
+        if addrs.is_empty() {
+            return Err(ConfigError::Invalid {
+                option: "listen",
+                message: format!("{:?} names no address", self.listen),
+            });
+        }
+        if self.tokens.is_empty() && !self.insecure_open {
+            if let Some(open) = addrs.iter().find(|a| !a.ip().is_loopback()) {
+                return Err(ConfigError::Invalid {
+                    option: "listen",
+                    message: format!(
+                        "{open} is not a loopback address: configure tokens, or pass \
+                         --insecure-open to serve anyone who can reach it"
+                    ),
+                });
+            }
+        }
+        Ok(addrs)
+    }
+}
+
+fn read_file(path: &Path) -> Result<FileConfig, ConfigError> {
+    let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+        path: path.display().to_string(),
+        source,
+    })?;
+    toml::from_str(&text).map_err(|e| ConfigError::File {
+        path: path.display().to_string(),
+        message: e.message().to_string(),
+    })
+}
+
+fn parse_tokens(specs: &[String]) -> Result<Vec<Token>, ConfigError> {
+    let mut tokens: Vec<Token> = Vec::new();
+    for spec in specs.iter().map(|s| s.trim()).filter(|s| !s.is_empty()) {
+        let (owner, secret) = match spec.split_once(':') {
+            Some((name, secret)) if !name.is_empty() => (name.to_string(), secret),
+            _ => {
+                let digest = Sha256::digest(spec.as_bytes());
+                (format!("token-{}", &hex(&digest)[..12]), spec)
+            }
+        };
+        if secret.is_empty() {
+            return Err(ConfigError::Invalid {
+                option: "tokens",
+                message: format!("token {owner:?} has an empty secret"),
+            });
+        }
+        if !secret.bytes().all(|b| b.is_ascii_graphic()) {
+            return Err(ConfigError::Invalid {
+                option: "tokens",
+                message: format!("token {owner:?}: secrets are printable ASCII without spaces"),
+            });
+        }
+        let digest: [u8; 32] = Sha256::digest(secret.as_bytes()).into();
+        if tokens
+            .iter()
+            .any(|t| t.digest == digest || t.owner == owner)
+        {
+            return Err(ConfigError::Invalid {
+                option: "tokens",
+                message: format!("token {owner:?} is given twice"),
+            });
+        }
+        tokens.push(Token { owner, digest });
+    }
+    Ok(tokens)
+}
+
+pub(crate) fn hex(bytes: &[u8]) -> String {
+    use std::fmt::Write;
+    bytes.iter().fold(String::new(), |mut s, b| {
+        let _ = write!(s, "{b:02x}");
+        s
+    })
+}
+
+/// `90`, `90s`, `15m`, `2h`, `7d`; a bare number is seconds.
+pub fn parse_duration(text: &str) -> Result<Duration, String> {
+    let t = text.trim();
+    let split = t.find(|c: char| !c.is_ascii_digit()).unwrap_or(t.len());
+    let (num, unit) = t.split_at(split);
+    let n: u64 = num
+        .parse()
+        .map_err(|_| format!("{text:?} is not a duration like 30s, 10m, 2h or 7d"))?;
+    let scale = match unit.trim() {
+        "" | "s" => 1,
+        "m" => 60,
+        "h" => 3600,
+        "d" => 86400,
+        _ => return Err(format!("{text:?}: unknown unit (s, m, h or d)")),
+    };
+    n.checked_mul(scale)
+        .map(Duration::from_secs)
+        .ok_or_else(|| format!("{text:?} is too long"))
+}
+
+/// `1048576`, `64KiB`, `512MiB`, `2GiB` (also K, M, G, KB, MB, GB, all binary).
+pub fn parse_size(text: &str) -> Result<usize, String> {
+    let t = text.trim();
+    let split = t.find(|c: char| !c.is_ascii_digit()).unwrap_or(t.len());
+    let (num, unit) = t.split_at(split);
+    let n: u64 = num
+        .parse()
+        .map_err(|_| format!("{text:?} is not a size like 512MiB"))?;
+    let shift = match unit.trim().to_ascii_lowercase().as_str() {
+        "" | "b" => 0,
+        "k" | "kb" | "kib" => 10,
+        "m" | "mb" | "mib" => 20,
+        "g" | "gb" | "gib" => 30,
+        _ => return Err(format!("{text:?}: unknown unit (KiB, MiB or GiB)")),
+    };
+    n.checked_mul(1 << shift)
+        .and_then(|v| usize::try_from(v).ok())
+        .ok_or_else(|| format!("{text:?} is too large"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn durations_and_sizes() {
+        assert_eq!(parse_duration("90").unwrap(), Duration::from_secs(90));
+        assert_eq!(parse_duration("15m").unwrap(), Duration::from_secs(900));
+        assert_eq!(parse_duration("7d").unwrap(), Duration::from_secs(604800));
+        assert!(parse_duration("7w").is_err());
+        assert!(parse_duration("m").is_err());
+        assert_eq!(parse_size("512MiB").unwrap(), 512 << 20);
+        assert_eq!(parse_size("10").unwrap(), 10);
+        assert!(parse_size("1TB").is_err());
+    }
+
+    #[test]
+    fn flags_win_over_the_file() {
+        let dir = std::env::temp_dir().join(format!("seamstress-config-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("seamstress.toml");
+        std::fs::write(
+            &path,
+            "workers = 3\nqueue_size = 5\nretention = \"2h\"\nmax_body = 1024\ntokens = [\"ci:abc\"]\n",
+        )
+        .unwrap();
+        let args = ServeArgs {
+            config: Some(path),
+            workers: Some(1),
+            ..ServeArgs::default()
+        };
+        let cfg = Config::resolve(&args).unwrap();
+        assert_eq!(cfg.workers, 1);
+        assert_eq!(cfg.queue_size, 5);
+        assert_eq!(cfg.retention, Duration::from_secs(7200));
+        assert_eq!(cfg.max_body, 1024);
+        assert_eq!(cfg.tokens[0].owner, "ci");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn open_listening_needs_tokens_or_consent() {
+        let mut cfg = Config {
+            listen: "0.0.0.0:0".into(),
+            ..Config::default()
+        };
+        assert!(cfg.listen_addrs().is_err());
+        cfg.insecure_open = true;
+        assert!(cfg.listen_addrs().is_ok());
+        cfg.insecure_open = false;
+        cfg.tokens = parse_tokens(&["a:secret".into()]).unwrap();
+        assert!(cfg.listen_addrs().is_ok());
+        cfg.listen = "127.0.0.1:0".into();
+        cfg.tokens.clear();
+        assert!(cfg.listen_addrs().is_ok());
+    }
+}

@@ -1,0 +1,44 @@
+//! The HTTP service: uploads, a durable job queue, a worker pool, results.
+//!
+//! `seamstress serve` accepts models over HTTP ([`api`]), stores each job
+//! and its upload durably before answering, and a pool of workers
+//! ([`worker`]) runs the same loader and pipeline as `seamstress process`
+//! ([`engine`]) off the async runtime. Routes and workers reach storage only
+//! through the [`store::JobStore`] and [`store::FileStore`] traits; the
+//! embedded implementations are SQLite ([`sqlite`]) and a local folder
+//! ([`files`]).
+
+mod api;
+mod app;
+pub mod config;
+mod engine;
+mod error;
+pub mod files;
+pub mod job;
+mod metrics;
+pub mod options;
+mod server;
+pub mod sqlite;
+pub mod store;
+pub mod upload;
+mod worker;
+
+pub use config::{Config, ServeArgs};
+pub use server::{serve, ServeError};
+
+/// Every route as (method, path), paths in OpenAPI syntax: what
+/// `openapi.yaml` must describe.
+pub fn route_table() -> Vec<(String, String)> {
+    api::routes()
+        .into_iter()
+        .map(|(method, path, _)| {
+            (
+                method.as_str().to_ascii_lowercase(),
+                path.replace("{*", "{"),
+            )
+        })
+        .collect()
+}
+
+/// The OpenAPI document the server serves at `/openapi.yaml`.
+pub const OPENAPI: &str = api::OPENAPI;

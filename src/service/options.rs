@@ -1,0 +1,245 @@
+//! The processing options a client may send, and their conversion into the
+//! engine's [`ProcessOptions`].
+
+use serde::{Deserialize, Serialize};
+
+use crate::bc1::Level;
+use crate::pipeline::{Format, Method, ProcessOptions};
+use crate::seam::erase::Mode;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ApiMode {
+    Local,
+    Global,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ApiMethod {
+    Erase,
+    Masking,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ApiFormat {
+    Dds,
+    Png,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ApiLevel {
+    Fast,
+    Default,
+    Best,
+}
+
+/// Options as a client sends them (JSON part or query parameters); absent
+/// ones take the command line's defaults.
+#[derive(Clone, Debug, Default, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct JobOptions {
+    pub mode: Option<ApiMode>,
+    pub method: Option<ApiMethod>,
+    pub format: Option<ApiFormat>,
+    pub bc1_level: Option<ApiLevel>,
+    pub seam_aware: Option<bool>,
+    pub seam_weight: Option<f64>,
+    pub mips: Option<bool>,
+    pub dx10: Option<bool>,
+    pub extra_maps: Option<bool>,
+}
+
+/// Every option decided: stored with the job, shown to the client, and part
+/// of the result-cache key.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ResolvedOptions {
+    pub mode: ApiMode,
+    pub method: ApiMethod,
+    pub format: ApiFormat,
+    pub bc1_level: ApiLevel,
+    pub seam_aware: bool,
+    pub seam_weight: f64,
+    pub mips: bool,
+    pub dx10: bool,
+    pub extra_maps: bool,
+}
+
+/// Query parameters that are options (the rest of the query is not).
+pub const QUERY_OPTIONS: &[&str] = &[
+    "mode",
+    "method",
+    "format",
+    "bc1_level",
+    "seam_aware",
+    "seam_weight",
+    "mips",
+    "dx10",
+    "extra_maps",
+];
+
+impl JobOptions {
+    /// Fields of `over` replace those of `self`.
+    pub fn overridden_by(self, over: JobOptions) -> JobOptions {
+        JobOptions {
+            mode: over.mode.or(self.mode),
+            method: over.method.or(self.method),
+            format: over.format.or(self.format),
+            bc1_level: over.bc1_level.or(self.bc1_level),
+            seam_aware: over.seam_aware.or(self.seam_aware),
+            seam_weight: over.seam_weight.or(self.seam_weight),
+            mips: over.mips.or(self.mips),
+            dx10: over.dx10.or(self.dx10),
+            extra_maps: over.extra_maps.or(self.extra_maps),
+        }
+    }
+
+    /// Sets one option from its query-parameter form.
+    pub fn set_from_query(&mut self, key: &str, value: &str) -> Result<(), String> {
+        fn word<T: serde::de::DeserializeOwned>(key: &str, value: &str) -> Result<T, String> {
+            serde_json::from_value(serde_json::Value::String(value.to_string()))
+                .map_err(|_| format!("{key}: {value:?} is not one of the allowed values"))
+        }
+        fn boolean(key: &str, value: &str) -> Result<bool, String> {
+            match value {
+                "true" | "1" | "yes" => Ok(true),
+                "false" | "0" | "no" => Ok(false),
+                _ => Err(format!("{key}: {value:?} is not true or false")),
+            }
+        }
+        match key {
+            "mode" => self.mode = Some(word(key, value)?),
+            "method" => self.method = Some(word(key, value)?),
+            "format" => self.format = Some(word(key, value)?),
+            "bc1_level" => self.bc1_level = Some(word(key, value)?),
+            "seam_aware" => self.seam_aware = Some(boolean(key, value)?),
+            "mips" => self.mips = Some(boolean(key, value)?),
+            "dx10" => self.dx10 = Some(boolean(key, value)?),
+            "extra_maps" => self.extra_maps = Some(boolean(key, value)?),
+            "seam_weight" => {
+                self.seam_weight = Some(
+                    value
+                        .parse()
+                        .map_err(|_| format!("seam_weight: {value:?} is not a number"))?,
+                )
+            }
+            _ => return Err(format!("unknown option {key:?}")),
+        }
+        Ok(())
+    }
+
+    /// Fills in the defaults of `seamstress process` and checks the values.
+    pub fn resolve(&self) -> Result<ResolvedOptions, String> {
+        let d = ProcessOptions::default();
+        let seam_weight = self.seam_weight.unwrap_or(d.seam_weight);
+        if !(seam_weight.is_finite() && seam_weight >= 0.0) {
+            return Err(format!(
+                "seam_weight must be a non-negative number, not {seam_weight}"
+            ));
+        }
+        Ok(ResolvedOptions {
+            mode: self.mode.unwrap_or(match d.mode {
+                Mode::Local => ApiMode::Local,
+                Mode::Global => ApiMode::Global,
+            }),
+            method: self.method.unwrap_or(match d.method {
+                Method::Erase => ApiMethod::Erase,
+                Method::Masking => ApiMethod::Masking,
+            }),
+            format: self.format.unwrap_or(match d.format {
+                Format::Dds => ApiFormat::Dds,
+                Format::Png => ApiFormat::Png,
+            }),
+            bc1_level: self.bc1_level.unwrap_or(match d.bc1_level {
+                Level::Fast => ApiLevel::Fast,
+                Level::Default => ApiLevel::Default,
+                Level::Best => ApiLevel::Best,
+            }),
+            seam_aware: self.seam_aware.unwrap_or(d.seam_aware),
+            seam_weight,
+            mips: self.mips.unwrap_or(d.mips),
+            dx10: self.dx10.unwrap_or(d.dx10),
+            extra_maps: self.extra_maps.unwrap_or(false),
+        })
+    }
+}
+
+/// The single place where API options become engine options: a field added
+/// to [`ProcessOptions`] is wired up here (and in the structs above).
+pub fn process_options(o: &ResolvedOptions) -> ProcessOptions {
+    ProcessOptions {
+        mode: match o.mode {
+            ApiMode::Local => Mode::Local,
+            ApiMode::Global => Mode::Global,
+        },
+        method: match o.method {
+            ApiMethod::Erase => Method::Erase,
+            ApiMethod::Masking => Method::Masking,
+        },
+        format: match o.format {
+            ApiFormat::Dds => Format::Dds,
+            ApiFormat::Png => Format::Png,
+        },
+        bc1_level: match o.bc1_level {
+            ApiLevel::Fast => Level::Fast,
+            ApiLevel::Default => Level::Default,
+            ApiLevel::Best => Level::Best,
+        },
+        seam_aware: o.seam_aware,
+        seam_weight: o.seam_weight,
+        mips: o.mips,
+        dx10: o.dx10,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_are_the_command_lines() {
+        let r = JobOptions::default().resolve().unwrap();
+        let p = process_options(&r);
+        let d = ProcessOptions::default();
+        assert_eq!(p.mode, d.mode);
+        assert_eq!(p.method, d.method);
+        assert_eq!(p.format, d.format);
+        assert_eq!(p.bc1_level, d.bc1_level);
+        assert_eq!(p.seam_aware, d.seam_aware);
+        assert_eq!(p.seam_weight, d.seam_weight);
+        assert_eq!((p.mips, p.dx10), (d.mips, d.dx10));
+    }
+
+    #[test]
+    fn query_values_are_checked() {
+        let mut o = JobOptions::default();
+        o.set_from_query("mode", "global").unwrap();
+        o.set_from_query("mips", "true").unwrap();
+        o.set_from_query("bc1_level", "fast").unwrap();
+        assert!(o.set_from_query("mode", "sideways").is_err());
+        assert!(o.set_from_query("dx10", "maybe").is_err());
+        assert!(o.set_from_query("colour", "red").is_err());
+        let r = o.resolve().unwrap();
+        assert_eq!(r.mode, ApiMode::Global);
+        assert!(r.mips);
+        assert_eq!(r.bc1_level, ApiLevel::Fast);
+        o.seam_weight = Some(f64::NAN);
+        assert!(o.resolve().is_err());
+    }
+
+    #[test]
+    fn json_part_overrides_query() {
+        let q = JobOptions {
+            mode: Some(ApiMode::Global),
+            dx10: Some(true),
+            ..JobOptions::default()
+        };
+        let part: JobOptions = serde_json::from_str(r#"{"mode":"local"}"#).unwrap();
+        let m = q.overridden_by(part);
+        assert_eq!(m.mode, Some(ApiMode::Local));
+        assert_eq!(m.dx10, Some(true));
+        assert!(serde_json::from_str::<JobOptions>(r#"{"colour":1}"#).is_err());
+    }
+}

@@ -1,0 +1,230 @@
+//! Start-up, recovery, the background tasks, and graceful shutdown.
+
+use std::future::IntoFuture;
+use std::io::Write;
+use std::net::SocketAddr;
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use std::time::Duration;
+
+use super::app::{App, Shared, SHUTTING_DOWN};
+use super::config::{Config, ConfigError, ServeArgs};
+use super::files::LocalFileStore;
+use super::job::{is_job_id, now_ms};
+use super::sqlite::SqliteJobStore;
+use super::store::{keys, FileStore, JobStore, StoreError};
+use super::worker::{self, MAX_ATTEMPTS};
+
+#[derive(Debug, thiserror::Error)]
+pub enum ServeError {
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    #[error(transparent)]
+    Store(#[from] StoreError),
+    #[error("cannot listen on {addr}: {source}")]
+    Listen {
+        addr: String,
+        source: std::io::Error,
+    },
+    #[error("{0}")]
+    Io(#[from] std::io::Error),
+}
+
+/// `seamstress serve`: runs until SIGTERM or SIGINT.
+pub fn serve(args: ServeArgs) -> Result<(), ServeError> {
+    let cfg = Config::resolve(&args)?;
+    let addrs = cfg.listen_addrs()?;
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .thread_name("seamstress-http")
+        .build()?;
+    let result = rt.block_on(run(cfg, addrs));
+    // Job threads still inside a stage after the grace period are not
+    // waited for: their jobs are back in the queue.
+    rt.shutdown_timeout(Duration::from_secs(1));
+    result
+}
+
+/// The two stores a server runs on.
+pub struct Stores {
+    pub jobs: Arc<dyn JobStore>,
+    pub files: Arc<dyn FileStore>,
+}
+
+/// Opens the embedded stores under `cfg.data`. Other implementations of
+/// the traits plug in here.
+pub fn open_stores(cfg: &Config) -> Result<Stores, ServeError> {
+    std::fs::create_dir_all(&cfg.data)
+        .map_err(|e| StoreError::Files(format!("cannot create {}: {e}", cfg.data.display())))?;
+    let jobs = SqliteJobStore::open(&cfg.data.join("jobs.sqlite3"))?;
+    let files = LocalFileStore::open(&cfg.data.join("files"))?;
+    Ok(Stores {
+        jobs: Arc::new(jobs),
+        files: Arc::new(files),
+    })
+}
+
+/// Re-queues what a crash interrupted and removes files no job owns.
+fn recover(jobs: &dyn JobStore, files: &dyn FileStore) -> Result<(), StoreError> {
+    let (requeued, failed) = jobs.recover(MAX_ATTEMPTS, now_ms())?;
+    for id in &requeued {
+        tracing::info!(job_id = %id, "interrupted job re-queued");
+    }
+    for id in &failed {
+        tracing::warn!(job_id = %id, "job failed: interrupted too often");
+        files.delete_prefix(&keys::job(id))?;
+    }
+    for id in files.list("jobs")? {
+        if !is_job_id(&id) || jobs.get(&id)?.is_none() {
+            tracing::info!(dir = %id, "removing files of no job");
+            files.delete_prefix(&keys::job(&id))?;
+        }
+    }
+    Ok(())
+}
+
+async fn run(cfg: Config, addrs: Vec<SocketAddr>) -> Result<(), ServeError> {
+    let Stores { jobs, files } = open_stores(&cfg)?;
+    {
+        let (jobs, files) = (jobs.clone(), files.clone());
+        tokio::task::spawn_blocking(move || recover(jobs.as_ref(), files.as_ref()))
+            .await
+            .map_err(|e| StoreError::Jobs(e.to_string()))??;
+    }
+    let listener = tokio::net::TcpListener::bind(&addrs[..])
+        .await
+        .map_err(|source| ServeError::Listen {
+            addr: cfg.listen.clone(),
+            source,
+        })?;
+    let local = listener.local_addr()?;
+    let workers = cfg.workers;
+    let grace = cfg.grace;
+    let app: Shared = Arc::new(App::new(cfg, jobs, files));
+
+    for index in 0..workers {
+        tokio::spawn(worker::worker(app.clone(), index));
+    }
+    tokio::spawn(reaper(app.clone()));
+
+    let (stop_http, stopped) = tokio::sync::oneshot::channel::<()>();
+    let mut server = tokio::spawn(
+        axum::serve(listener, super::api::router(app.clone()))
+            .with_graceful_shutdown(async move {
+                let _ = stopped.await;
+            })
+            .into_future(),
+    );
+    // Tests and scripts read the address from the first line of stdout.
+    {
+        let mut out = std::io::stdout().lock();
+        let _ = writeln!(out, "listening on {local}");
+        let _ = out.flush();
+    }
+    tracing::info!(addr = %local, workers, "listening");
+
+    tokio::select! {
+        _ = shutdown_signal() => {}
+        r = &mut server => {
+            // The server stopped on its own: an accept loop failure.
+            return match r {
+                Ok(Ok(())) => Ok(()),
+                Ok(Err(e)) => Err(e.into()),
+                Err(e) => Err(std::io::Error::other(e).into()),
+            };
+        }
+    }
+    shutdown(app, stop_http, grace).await;
+    Ok(())
+}
+
+/// Stops accepting, lets running jobs finish within `grace`, and puts the
+/// rest back in the queue (queued jobs stay queued: the store keeps them).
+async fn shutdown(app: Shared, stop_http: tokio::sync::oneshot::Sender<()>, grace: Duration) {
+    let deadline = tokio::time::Instant::now() + grace;
+    tracing::info!(grace_s = grace.as_secs(), "shutting down");
+    app.accepting.store(false, Ordering::Release);
+    app.stopping.send_replace(true);
+    let _ = stop_http.send(());
+    while app.metrics.busy_workers.load(Ordering::Relaxed) > 0
+        && tokio::time::Instant::now() < deadline
+    {
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let left: Vec<String> = {
+        let running = app.running();
+        for flag in running.values() {
+            flag.store(SHUTTING_DOWN, Ordering::Release);
+        }
+        running.keys().cloned().collect()
+    };
+    if !left.is_empty() {
+        let jobs = app.jobs.clone();
+        let requeued = tokio::task::spawn_blocking(move || {
+            left.iter()
+                .filter(|id| jobs.requeue(id).unwrap_or(false))
+                .count()
+        })
+        .await
+        .unwrap_or(0);
+        tracing::info!(requeued, "running jobs re-queued after the grace period");
+    }
+    tracing::info!("stopped");
+}
+
+async fn shutdown_signal() {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{signal, SignalKind};
+        match signal(SignalKind::terminate()) {
+            Ok(mut term) => {
+                tokio::select! {
+                    _ = term.recv() => {}
+                    _ = tokio::signal::ctrl_c() => {}
+                }
+            }
+            Err(_) => {
+                let _ = tokio::signal::ctrl_c().await;
+            }
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = tokio::signal::ctrl_c().await;
+    }
+}
+
+/// Deletes finished jobs older than the retention time, every minute.
+async fn reaper(app: Shared) {
+    let mut stopping = app.stopping.subscribe();
+    loop {
+        let retention = app.cfg.retention.as_millis() as u64;
+        let cutoff = now_ms().saturating_sub(retention);
+        let (jobs, files) = (app.jobs.clone(), app.files.clone());
+        let swept = tokio::task::spawn_blocking(move || -> Result<usize, StoreError> {
+            let mut n = 0;
+            loop {
+                let batch = jobs.expired(cutoff, 100)?;
+                if batch.is_empty() {
+                    return Ok(n);
+                }
+                for job in batch {
+                    files.delete_prefix(&keys::job(&job.id))?;
+                    jobs.delete(&job.id)?;
+                    n += 1;
+                }
+            }
+        })
+        .await;
+        match swept {
+            Ok(Ok(0)) => {}
+            Ok(Ok(n)) => tracing::info!(jobs = n, "expired jobs deleted"),
+            Ok(Err(e)) => tracing::error!(error = %e, "cannot delete expired jobs"),
+            Err(e) => tracing::error!(error = %e, "expiry task failed"),
+        }
+        tokio::select! {
+            _ = tokio::time::sleep(Duration::from_secs(60)) => {}
+            _ = stopping.changed() => return,
+        }
+    }
+}

@@ -1,0 +1,351 @@
+//! The embedded job store: one SQLite file, written through the WAL with a
+//! full sync on every commit, so an accepted job survives `kill -9` and
+//! power loss alike.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::sync::Mutex;
+
+use rusqlite::{params, Connection, OptionalExtension, Transaction};
+
+use super::job::{Job, JobState, Progress};
+use super::store::{JobStore, StoreError, Submitted};
+
+pub struct SqliteJobStore {
+    conn: Mutex<Connection>,
+}
+
+const SCHEMA: &str = "
+CREATE TABLE IF NOT EXISTS jobs (
+    seq INTEGER PRIMARY KEY AUTOINCREMENT,
+    id TEXT NOT NULL UNIQUE,
+    owner TEXT NOT NULL,
+    state TEXT NOT NULL,
+    input_key TEXT NOT NULL,
+    idem_key TEXT,
+    finished_ms INTEGER,
+    data TEXT NOT NULL
+);
+CREATE UNIQUE INDEX IF NOT EXISTS jobs_idem ON jobs(owner, idem_key) WHERE idem_key IS NOT NULL;
+CREATE INDEX IF NOT EXISTS jobs_state ON jobs(state, seq);
+CREATE INDEX IF NOT EXISTS jobs_owner ON jobs(owner, seq);
+CREATE INDEX IF NOT EXISTS jobs_key ON jobs(owner, input_key, state);
+CREATE INDEX IF NOT EXISTS jobs_finished ON jobs(finished_ms);
+";
+
+fn db_err(e: rusqlite::Error) -> StoreError {
+    StoreError::Jobs(e.to_string())
+}
+
+impl SqliteJobStore {
+    pub fn open(path: &Path) -> Result<Self, StoreError> {
+        let conn = Connection::open(path).map_err(db_err)?;
+        conn.pragma_update(None, "journal_mode", "WAL")
+            .map_err(db_err)?;
+        conn.pragma_update(None, "synchronous", "FULL")
+            .map_err(db_err)?;
+        conn.busy_timeout(std::time::Duration::from_secs(10))
+            .map_err(db_err)?;
+        conn.execute_batch(SCHEMA).map_err(db_err)?;
+        Ok(SqliteJobStore {
+            conn: Mutex::new(conn),
+        })
+    }
+
+    fn with<T>(
+        &self,
+        f: impl FnOnce(&Transaction<'_>) -> Result<T, StoreError>,
+    ) -> Result<T, StoreError> {
+        // A poisoned lock only means another thread panicked mid-call; the
+        // transaction it held was rolled back when it unwound.
+        let mut conn = self.conn.lock().unwrap_or_else(|p| p.into_inner());
+        let tx = conn
+            .transaction_with_behavior(rusqlite::TransactionBehavior::Immediate)
+            .map_err(db_err)?;
+        let out = f(&tx)?;
+        tx.commit().map_err(db_err)?;
+        Ok(out)
+    }
+}
+
+fn decode(seq: i64, id: &str, data: &str) -> Result<Job, StoreError> {
+    let mut job: Job = serde_json::from_str(data).map_err(|e| StoreError::Corrupt {
+        id: id.to_string(),
+        message: e.to_string(),
+    })?;
+    job.seq = seq;
+    Ok(job)
+}
+
+fn encode(job: &Job) -> Result<String, StoreError> {
+    serde_json::to_string(job).map_err(|e| StoreError::Corrupt {
+        id: job.id.clone(),
+        message: e.to_string(),
+    })
+}
+
+fn query_jobs(
+    tx: &Transaction<'_>,
+    sql: &str,
+    params: impl rusqlite::Params,
+) -> Result<Vec<Job>, StoreError> {
+    let mut stmt = tx.prepare_cached(sql).map_err(db_err)?;
+    let rows = stmt
+        .query_map(params, |r| {
+            Ok((
+                r.get::<_, i64>(0)?,
+                r.get::<_, String>(1)?,
+                r.get::<_, String>(2)?,
+            ))
+        })
+        .map_err(db_err)?;
+    let mut jobs = Vec::new();
+    for row in rows {
+        let (seq, id, data) = row.map_err(db_err)?;
+        jobs.push(decode(seq, &id, &data)?);
+    }
+    Ok(jobs)
+}
+
+fn load(tx: &Transaction<'_>, id: &str) -> Result<Option<Job>, StoreError> {
+    Ok(
+        query_jobs(tx, "SELECT seq, id, data FROM jobs WHERE id = ?1", [id])?
+            .into_iter()
+            .next(),
+    )
+}
+
+fn store(tx: &Transaction<'_>, job: &Job) -> Result<(), StoreError> {
+    tx.execute(
+        "UPDATE jobs SET state = ?2, finished_ms = ?3, data = ?4 WHERE id = ?1",
+        params![
+            job.id,
+            job.state.as_str(),
+            job.finished_ms.map(|v| v as i64),
+            encode(job)?
+        ],
+    )
+    .map_err(db_err)?;
+    Ok(())
+}
+
+impl JobStore for SqliteJobStore {
+    fn submit(&self, job: &Job, queue_limit: usize) -> Result<Submitted, StoreError> {
+        self.with(|tx| {
+            if let Some(key) = &job.idempotency_key {
+                let existing = query_jobs(
+                    tx,
+                    "SELECT seq, id, data FROM jobs WHERE owner = ?1 AND idem_key = ?2",
+                    params![job.owner, key],
+                )?;
+                if let Some(e) = existing.into_iter().next() {
+                    return Ok(Submitted::Existing(Box::new(e)));
+                }
+            }
+            if job.state == JobState::Queued {
+                let queued: i64 = tx
+                    .query_row(
+                        "SELECT COUNT(*) FROM jobs WHERE state = 'queued'",
+                        [],
+                        |r| r.get(0),
+                    )
+                    .map_err(db_err)?;
+                if queued as usize >= queue_limit {
+                    return Ok(Submitted::QueueFull);
+                }
+            }
+            tx.execute(
+                "INSERT INTO jobs (id, owner, state, input_key, idem_key, finished_ms, data)
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7)",
+                params![
+                    job.id,
+                    job.owner,
+                    job.state.as_str(),
+                    job.input_key,
+                    job.idempotency_key,
+                    job.finished_ms.map(|v| v as i64),
+                    encode(job)?
+                ],
+            )
+            .map_err(db_err)?;
+            Ok(Submitted::Created)
+        })
+    }
+
+    fn get(&self, id: &str) -> Result<Option<Job>, StoreError> {
+        self.with(|tx| load(tx, id))
+    }
+
+    fn list(&self, owner: &str, before: Option<i64>, limit: usize) -> Result<Vec<Job>, StoreError> {
+        self.with(|tx| {
+            query_jobs(
+                tx,
+                "SELECT seq, id, data FROM jobs WHERE owner = ?1 AND seq < ?2
+                 ORDER BY seq DESC LIMIT ?3",
+                params![owner, before.unwrap_or(i64::MAX), limit as i64],
+            )
+        })
+    }
+
+    fn find_succeeded(&self, owner: &str, input_key: &str) -> Result<Option<Job>, StoreError> {
+        self.with(|tx| {
+            Ok(query_jobs(
+                tx,
+                "SELECT seq, id, data FROM jobs
+                 WHERE owner = ?1 AND input_key = ?2 AND state = 'succeeded'
+                 ORDER BY seq DESC LIMIT 1",
+                params![owner, input_key],
+            )?
+            .into_iter()
+            .next())
+        })
+    }
+
+    fn claim(&self, now_ms: u64) -> Result<Option<Job>, StoreError> {
+        self.with(|tx| {
+            let next = query_jobs(
+                tx,
+                "SELECT seq, id, data FROM jobs WHERE state = 'queued' ORDER BY seq LIMIT 1",
+                [],
+            )?;
+            let Some(mut job) = next.into_iter().next() else {
+                return Ok(None);
+            };
+            job.state = JobState::Running;
+            job.started_ms = Some(now_ms);
+            job.attempts += 1;
+            job.progress = Progress::at("load", 0.0);
+            job.timings_ms.queued = Some(now_ms.saturating_sub(job.created_ms));
+            store(tx, &job)?;
+            Ok(Some(job))
+        })
+    }
+
+    fn update_running(&self, job: &Job) -> Result<bool, StoreError> {
+        self.with(|tx| {
+            let state: Option<String> = tx
+                .query_row("SELECT state FROM jobs WHERE id = ?1", [&job.id], |r| {
+                    r.get(0)
+                })
+                .optional()
+                .map_err(db_err)?;
+            if state.as_deref() != Some("running") {
+                return Ok(false);
+            }
+            store(tx, job)?;
+            Ok(true)
+        })
+    }
+
+    fn cancel(&self, id: &str, now_ms: u64) -> Result<Option<Job>, StoreError> {
+        self.with(|tx| {
+            let Some(mut job) = load(tx, id)? else {
+                return Ok(None);
+            };
+            if job.state.is_terminal() {
+                return Ok(None);
+            }
+            job.state = JobState::Canceled;
+            job.finished_ms = Some(now_ms);
+            job.progress = Progress::at("done", job.progress.fraction);
+            store(tx, &job)?;
+            Ok(Some(job))
+        })
+    }
+
+    fn requeue(&self, id: &str) -> Result<bool, StoreError> {
+        self.with(|tx| {
+            let Some(mut job) = load(tx, id)? else {
+                return Ok(false);
+            };
+            if job.state != JobState::Running {
+                return Ok(false);
+            }
+            job.state = JobState::Queued;
+            job.started_ms = None;
+            job.progress = Progress::at("queued", 0.0);
+            // The interrupted attempt was not the job's fault.
+            job.attempts = job.attempts.saturating_sub(1);
+            store(tx, &job)?;
+            Ok(true)
+        })
+    }
+
+    fn recover(
+        &self,
+        max_attempts: u32,
+        now_ms: u64,
+    ) -> Result<(Vec<String>, Vec<String>), StoreError> {
+        self.with(|tx| {
+            let running = query_jobs(
+                tx,
+                "SELECT seq, id, data FROM jobs WHERE state = 'running' ORDER BY seq",
+                [],
+            )?;
+            let (mut requeued, mut failed) = (Vec::new(), Vec::new());
+            for mut job in running {
+                if job.attempts >= max_attempts {
+                    job.state = JobState::Failed;
+                    job.finished_ms = Some(now_ms);
+                    job.progress = Progress::at("done", job.progress.fraction);
+                    job.error = Some(super::job::JobError {
+                        code: "interrupted".into(),
+                        message: format!(
+                            "the server stopped during each of {} attempts",
+                            job.attempts
+                        ),
+                    });
+                    failed.push(job.id.clone());
+                } else {
+                    job.state = JobState::Queued;
+                    job.started_ms = None;
+                    job.progress = Progress::at("queued", 0.0);
+                    requeued.push(job.id.clone());
+                }
+                store(tx, &job)?;
+            }
+            Ok((requeued, failed))
+        })
+    }
+
+    fn delete(&self, id: &str) -> Result<(), StoreError> {
+        self.with(|tx| {
+            tx.execute("DELETE FROM jobs WHERE id = ?1", [id])
+                .map_err(db_err)?;
+            Ok(())
+        })
+    }
+
+    fn expired(&self, before_ms: u64, limit: usize) -> Result<Vec<Job>, StoreError> {
+        self.with(|tx| {
+            query_jobs(
+                tx,
+                "SELECT seq, id, data FROM jobs
+                 WHERE finished_ms IS NOT NULL AND finished_ms < ?1
+                   AND state IN ('succeeded', 'failed', 'canceled')
+                 ORDER BY finished_ms LIMIT ?2",
+                params![before_ms as i64, limit as i64],
+            )
+        })
+    }
+
+    fn counts(&self) -> Result<BTreeMap<JobState, u64>, StoreError> {
+        self.with(|tx| {
+            let mut stmt = tx
+                .prepare_cached("SELECT state, COUNT(*) FROM jobs GROUP BY state")
+                .map_err(db_err)?;
+            let rows = stmt
+                .query_map([], |r| Ok((r.get::<_, String>(0)?, r.get::<_, i64>(1)?)))
+                .map_err(db_err)?;
+            let mut counts: BTreeMap<JobState, u64> =
+                JobState::ALL.iter().map(|&s| (s, 0)).collect();
+            for row in rows {
+                let (state, n) = row.map_err(db_err)?;
+                if let Some(s) = JobState::parse(&state) {
+                    counts.insert(s, n as u64);
+                }
+            }
+            Ok(counts)
+        })
+    }
+}

@@ -1,0 +1,301 @@
+//! The worker pool: each worker claims the oldest queued job from the job
+//! store, runs it on a blocking thread, and stores its files and outcome.
+
+use std::sync::atomic::{AtomicU8, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use sha2::{Digest, Sha256};
+use tracing::Instrument;
+
+use super::app::{stop_of, Shared, RUN, TIMED_OUT};
+use super::config::hex;
+use super::engine::{self, EngineError, Stop};
+use super::job::{now_ms, FileEntry, Job, JobError, JobState, Progress};
+use super::store::{keys, StoreError};
+use super::upload::Bundle;
+
+/// A job that has been started this many times without finishing (each
+/// start interrupted by a crash) fails instead of running again.
+pub const MAX_ATTEMPTS: u32 = 3;
+
+/// How often an idle worker looks at the queue without being woken: other
+/// processes sharing the store may have queued work.
+const POLL: Duration = Duration::from_secs(1);
+
+pub async fn worker(app: Shared, index: usize) {
+    let mut stopping = app.stopping.subscribe();
+    loop {
+        if app.is_stopping() {
+            return;
+        }
+        let store = app.jobs.clone();
+        let claimed = tokio::task::spawn_blocking(move || store.claim(now_ms())).await;
+        match claimed {
+            Ok(Ok(Some(job))) => run(&app, job).await,
+            Ok(Ok(None)) => {
+                tokio::select! {
+                    _ = app.work.notified() => {}
+                    _ = tokio::time::sleep(POLL) => {}
+                    _ = stopping.changed() => {}
+                }
+            }
+            Ok(Err(e)) => {
+                tracing::error!(worker = index, error = %e, "cannot claim a job");
+                tokio::time::sleep(POLL).await;
+            }
+            Err(e) => {
+                tracing::error!(worker = index, error = %e, "claim task failed");
+                tokio::time::sleep(POLL).await;
+            }
+        }
+    }
+}
+
+async fn run(app: &Shared, job: Job) {
+    let id = job.id.clone();
+    let span = tracing::info_span!("job", job_id = %id);
+    async {
+        let flag = Arc::new(AtomicU8::new(RUN));
+        app.running().insert(id.clone(), flag.clone());
+        app.metrics.busy_workers.fetch_add(1, Ordering::Relaxed);
+        if let Some(q) = job.timings_ms.queued {
+            app.metrics.stage("queued", q);
+        }
+        tracing::info!(attempt = job.attempts, input = %job.input.name, "job started");
+
+        let deadline = tokio::time::Instant::now() + app.cfg.job_timeout;
+        let snapshot = job.clone();
+        let (task_app, task_flag) = (app.clone(), flag.clone());
+        let mut handle = tokio::task::spawn_blocking(move || execute(&task_app, job, &task_flag));
+        let outcome = tokio::select! {
+            r = &mut handle => r,
+            _ = tokio::time::sleep_until(deadline) => {
+                flag.store(TIMED_OUT, Ordering::Release);
+                time_out(app, snapshot).await;
+                // The thread stops at its next checkpoint; the slot stays
+                // taken until then so that no more jobs run than workers.
+                handle.await
+            }
+        };
+        match outcome {
+            Ok(Ok(state)) => {
+                tracing::info!(state = state.as_str(), "job ended");
+            }
+            Ok(Err(e)) => tracing::error!(error = %e, "job store failed during the job"),
+            Err(e) => tracing::error!(error = %e, "job thread failed"),
+        }
+        app.running().remove(&id);
+        app.metrics.busy_workers.fetch_sub(1, Ordering::Relaxed);
+        app.announce_finished();
+    }
+    .instrument(span)
+    .await
+}
+
+async fn time_out(app: &Shared, mut job: Job) {
+    let limit = app.cfg.job_timeout.as_secs();
+    job.state = JobState::Failed;
+    job.finished_ms = Some(now_ms());
+    job.progress = Progress::at("done", job.progress.fraction);
+    job.error = Some(JobError {
+        code: "timeout".into(),
+        message: format!("the job took longer than its limit of {limit} s"),
+    });
+    let store = app.jobs.clone();
+    match tokio::task::spawn_blocking(move || store.update_running(&job)).await {
+        Ok(Ok(true)) => {
+            tracing::warn!(limit_s = limit, "job timed out");
+            app.metrics.finished(JobState::Failed);
+            app.announce_finished();
+        }
+        Ok(Ok(false)) => {}
+        Ok(Err(e)) => tracing::error!(error = %e, "cannot record the time-out"),
+        Err(e) => tracing::error!(error = %e, "time-out task failed"),
+    }
+}
+
+/// Runs a claimed job to its end on the current (blocking) thread and
+/// returns the state it ended in.
+fn execute(app: &Shared, mut job: Job, flag: &AtomicU8) -> Result<JobState, StoreError> {
+    let started = Instant::now();
+    if let Some(earlier) = app.jobs.find_succeeded(&job.owner, &job.input_key)? {
+        // An identical job finished while this one waited.
+        if reuse(app, &earlier, &mut job).is_ok() {
+            return finish(app, job, started);
+        }
+    }
+    let bundle = match app.files.get(&keys::input(&job.id))? {
+        Some(bytes) => Bundle::decode(&bytes),
+        None => Err("the upload is missing from the file store".into()),
+    };
+    let bundle = match bundle {
+        Ok(b) => b,
+        Err(message) => {
+            return fail(app, job, "internal", message, started);
+        }
+    };
+    let options = job.options.clone();
+    let outcome = {
+        let mut checkpoint = |stage: &str, fraction: f64| -> Result<(), Stop> {
+            if let Some(stop) = stop_of(flag) {
+                return Err(stop);
+            }
+            job.progress = Progress::at(stage, fraction);
+            match app.jobs.update_running(&job) {
+                Ok(true) => Ok(()),
+                // Canceled, or timed out, through the store.
+                Ok(false) => Err(Stop::Canceled),
+                Err(e) => {
+                    tracing::warn!(error = %e, "cannot record progress");
+                    Ok(())
+                }
+            }
+        };
+        engine::run(&bundle, &options, app.cfg.max_texture_size, &mut checkpoint)
+    };
+    drop(bundle);
+    match outcome {
+        Ok(produced) => {
+            if let Some(stop) = stop_of(flag) {
+                return stopped(app, job, stop);
+            }
+            job.progress = Progress::at("store", 0.95);
+            if !app.jobs.update_running(&job)? {
+                return stopped(app, job, Stop::Canceled);
+            }
+            let t = Instant::now();
+            let mut files = Vec::with_capacity(produced.files.len());
+            for (name, bytes) in &produced.files {
+                app.files.put(&keys::output(&job.id, name), bytes)?;
+                files.push(FileEntry {
+                    name: name.clone(),
+                    bytes: bytes.len() as u64,
+                    sha256: hex(&Sha256::digest(bytes)),
+                    content_type: content_type(name).to_string(),
+                });
+            }
+            job.timings_ms.load = produced.timings.load;
+            job.timings_ms.process = produced.timings.process;
+            job.timings_ms.rewrite = produced.timings.rewrite;
+            job.timings_ms.store = Some(t.elapsed().as_millis() as u64);
+            job.report = Some(produced.report);
+            job.files = files;
+            job.warnings = produced.warnings;
+            for (stage, ms) in [
+                ("load", job.timings_ms.load),
+                ("process", job.timings_ms.process),
+                ("rewrite", job.timings_ms.rewrite),
+                ("store", job.timings_ms.store),
+            ] {
+                if let Some(ms) = ms {
+                    app.metrics.stage(stage, ms);
+                }
+            }
+            finish(app, job, started)
+        }
+        Err(EngineError::BadInput(message)) => fail(app, job, "invalid_model", message, started),
+        Err(EngineError::Failed(message)) => fail(app, job, "processing_failed", message, started),
+        Err(EngineError::Stopped(stop)) => stopped(app, job, stop),
+    }
+}
+
+/// Takes the files of an earlier identical job.
+fn reuse(app: &Shared, earlier: &Job, job: &mut Job) -> Result<(), StoreError> {
+    for f in &earlier.files {
+        app.files.copy(
+            &keys::output(&earlier.id, &f.name),
+            &keys::output(&job.id, &f.name),
+        )?;
+    }
+    job.files = earlier.files.clone();
+    job.report = earlier.report.clone();
+    job.warnings = earlier.warnings.clone();
+    job.cached_from = Some(earlier.id.clone());
+    app.metrics.cache_hits.fetch_add(1, Ordering::Relaxed);
+    tracing::info!(from = %earlier.id, "result reused");
+    Ok(())
+}
+
+fn finish(app: &Shared, mut job: Job, started: Instant) -> Result<JobState, StoreError> {
+    job.state = JobState::Succeeded;
+    job.finished_ms = Some(now_ms());
+    job.progress = Progress::at("done", 1.0);
+    job.timings_ms.total = Some(started.elapsed().as_millis() as u64);
+    if !app.jobs.update_running(&job)? {
+        return lost(app, &job.id);
+    }
+    app.files.delete_prefix(&keys::input(&job.id))?;
+    if let Some(ms) = job.timings_ms.total {
+        app.metrics.stage("total", ms);
+    }
+    app.metrics.finished(JobState::Succeeded);
+    Ok(JobState::Succeeded)
+}
+
+fn fail(
+    app: &Shared,
+    mut job: Job,
+    code: &str,
+    message: impl Into<String>,
+    started: Instant,
+) -> Result<JobState, StoreError> {
+    let message = message.into();
+    tracing::warn!(code, message = %message, "job failed");
+    job.state = JobState::Failed;
+    job.finished_ms = Some(now_ms());
+    job.progress = Progress::at("done", job.progress.fraction);
+    job.timings_ms.total = Some(started.elapsed().as_millis() as u64);
+    job.error = Some(JobError {
+        code: code.into(),
+        message,
+    });
+    if !app.jobs.update_running(&job)? {
+        return lost(app, &job.id);
+    }
+    app.files.delete_prefix(&keys::job(&job.id))?;
+    app.metrics.finished(JobState::Failed);
+    Ok(JobState::Failed)
+}
+
+fn stopped(app: &Shared, job: Job, stop: Stop) -> Result<JobState, StoreError> {
+    match stop {
+        Stop::ShuttingDown => {
+            app.jobs.requeue(&job.id)?;
+            tracing::info!("job re-queued for the next start");
+            Ok(JobState::Queued)
+        }
+        Stop::Canceled | Stop::TimedOut => lost(app, &job.id),
+    }
+}
+
+/// The store no longer has the job as running (canceled, timed out,
+/// re-queued or deleted meanwhile): whatever this run wrote goes, unless
+/// the job is waiting to run again.
+fn lost(app: &Shared, id: &str) -> Result<JobState, StoreError> {
+    let current = app.jobs.get(id)?;
+    match current.as_ref().map(|j| j.state) {
+        Some(JobState::Queued) => Ok(JobState::Queued),
+        Some(state) => {
+            app.files.delete_prefix(&keys::job(id))?;
+            Ok(state)
+        }
+        None => {
+            app.files.delete_prefix(&keys::job(id))?;
+            Ok(JobState::Canceled)
+        }
+    }
+}
+
+pub fn content_type(name: &str) -> &'static str {
+    let ext = name.rsplit('.').next().unwrap_or("").to_ascii_lowercase();
+    match ext.as_str() {
+        "dds" => "image/vnd-ms.dds",
+        "png" => "image/png",
+        "jpg" | "jpeg" => "image/jpeg",
+        "json" => "application/json",
+        "gltf" => "model/gltf+json",
+        "glb" => "model/gltf-binary",
+        _ => "application/octet-stream",
+    }
+}

@@ -1,0 +1,194 @@
+//! The `seamstress` binary end to end: outputs, exit statuses, and agreement
+//! with the independent evaluator in `../shared/tools/seam_eval.py`.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use serde_json::Value;
+
+fn shared() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared")
+}
+
+fn scratch(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("seamstress-cli-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    dir
+}
+
+fn seamstress(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_seamstress"))
+        .args(args)
+        .output()
+        .expect("seamstress runs")
+}
+
+fn process(model: &Path, out: &Path) -> Value {
+    let o = seamstress(&[
+        "process",
+        model.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(
+        o.status.success(),
+        "{}: {}",
+        model.display(),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let report = std::fs::read(out.join("report.json")).expect("report.json written");
+    serde_json::from_slice(&report).expect("report.json is JSON")
+}
+
+/// Runs the evaluator; it needs python3 with numpy, pillow and pygltflib
+/// (`.ci/run` installs them).
+fn seam_eval(model: &Path, image: Option<&Path>, texture: usize) -> Value {
+    let mut cmd = Command::new("python3");
+    cmd.arg(shared().join("tools/seam_eval.py")).arg(model);
+    if let Some(i) = image {
+        cmd.arg(i);
+    }
+    cmd.args(["--texture", &texture.to_string()]);
+    let o = cmd.output().expect("python3 runs");
+    assert!(
+        o.status.success(),
+        "seam_eval.py failed on {}: {}",
+        model.display(),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    serde_json::from_slice(&o.stdout).expect("seam_eval prints JSON")
+}
+
+fn close(ours: &Value, theirs: &Value, what: &str) {
+    // A model without seams reports null; the evaluator reports 0.
+    let a = ours.as_f64().unwrap_or(0.0);
+    let b = theirs.as_f64().unwrap_or(0.0);
+    assert!(
+        (a - b).abs() <= 0.005 * b.abs().max(a.abs()) + 1e-3,
+        "{what}: report {a} vs seam_eval {b}"
+    );
+}
+
+#[test]
+fn reports_agree_with_the_independent_evaluator() {
+    let models = [
+        "cube/cube_gradient_128.glb",
+        "cube/cube_gradient_1024.glb",
+        "cube/cube_bad_background_100.glb",
+        "Duck/Duck.gltf",
+        "BoxTextured/BoxTextured-glTF/BoxTextured.gltf",
+        "BoxTextured/BoxTextured-glTF-Binary/BoxTextured.glb",
+        "BoxTextured/BoxTextured-glTF-Embedded/BoxTextured.gltf",
+        "blub/blub.glb",
+        "Fox/Fox.gltf",
+    ];
+    for rel in models {
+        let model = shared().join("assets").join(rel);
+        let out = scratch(&rel.replace('/', "_"));
+        let report = process(&model, &out);
+        for t in report["textures"].as_array().expect("textures") {
+            let texture = t["image"].as_u64().unwrap() as usize;
+            let png = out.join(t["files"]["erased"].as_str().unwrap());
+            assert!(png.exists(), "{rel}: {} missing", png.display());
+            let input = seam_eval(&model, None, texture);
+            close(
+                &t["input"]["seam_rms"],
+                &input["seam_rms"],
+                &format!("{rel} input seam_rms"),
+            );
+            let erased = seam_eval(&model, Some(&png), texture);
+            close(
+                &t["erased"]["seam_rms"],
+                &erased["seam_rms"],
+                &format!("{rel} erased seam_rms"),
+            );
+            close(
+                &t["erased"]["psnr"],
+                &erased["psnr"],
+                &format!("{rel} erased psnr"),
+            );
+            assert_eq!(t["seam_edges"], input["seam_edges"], "{rel}: seam edges");
+            // The DDS holds the seam-aware encoding; the evaluator decodes it independently.
+            let dds = out.join(t["files"]["dds"].as_str().expect("a DDS by default"));
+            let shipped = seam_eval(&model, Some(&dds), texture);
+            let sa = &t["bc1_seam_aware"];
+            close(
+                &sa["seam_rms"],
+                &shipped["seam_rms"],
+                &format!("{rel} DDS seam_rms"),
+            );
+            close(&sa["psnr"], &shipped["psnr"], &format!("{rel} DDS psnr"));
+        }
+        let _ = std::fs::remove_dir_all(&out);
+    }
+}
+
+#[test]
+fn every_negative_asset_is_bad_input_with_one_line() {
+    let mut files = Vec::new();
+    let mut stack = vec![shared().join("assets/negative")];
+    while let Some(dir) = stack.pop() {
+        for e in std::fs::read_dir(&dir).expect("negative assets") {
+            let p = e.expect("entry").path();
+            if p.is_dir() {
+                stack.push(p);
+            } else if matches!(p.extension().and_then(|x| x.to_str()), Some("gltf" | "glb")) {
+                files.push(p);
+            }
+        }
+    }
+    assert!(files.len() >= 10, "negative assets found: {files:?}");
+    for f in files {
+        let out = scratch("negative");
+        let o = seamstress(&[
+            "process",
+            f.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ]);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{}: {err}", f.display());
+        assert_eq!(err.trim_end().lines().count(), 1, "{}: {err}", f.display());
+        let name = f.file_name().unwrap().to_str().unwrap();
+        assert!(
+            err.contains(name),
+            "{}: error does not name the file: {err}",
+            f.display()
+        );
+        assert!(
+            !out.join("report.json").exists(),
+            "{}: wrote a report",
+            f.display()
+        );
+    }
+}
+
+#[test]
+fn texture_above_the_pixel_limit_is_refused() {
+    let model = shared().join("assets/cube/cube_gradient_128.glb");
+    let out = scratch("limit");
+    let o = seamstress(&[
+        "process",
+        model.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--max-texture-size",
+        "64",
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("cube_gradient_128.glb"), "{err}");
+}
+
+#[test]
+fn repeated_runs_write_identical_files() {
+    let model = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("examples/cube_gradient_128.glb");
+    let (a, b) = (scratch("det-a"), scratch("det-b"));
+    let ra = process(&model, &a);
+    process(&model, &b);
+    let png = ra["textures"][0]["files"]["erased"].as_str().unwrap();
+    assert_eq!(
+        std::fs::read(a.join(png)).unwrap(),
+        std::fs::read(b.join(png)).unwrap()
+    );
+}

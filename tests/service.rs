@@ -1,0 +1,1028 @@
+//! `seamstress serve` end to end: the real binary on `127.0.0.1:0`, driven
+//! over HTTP.
+
+use std::collections::{BTreeMap, HashMap};
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use reqwest::multipart::{Form, Part};
+use reqwest::{Client, Response, StatusCode};
+use serde_json::{json, Value};
+
+fn assets() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/assets")
+}
+
+fn scratch(name: &str) -> PathBuf {
+    let dir =
+        std::env::temp_dir().join(format!("seamstress-service-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+struct Server {
+    child: Child,
+    base: String,
+    data: PathBuf,
+    args: Vec<String>,
+}
+
+impl Server {
+    fn start(data: &Path, args: &[&str]) -> Server {
+        let args: Vec<String> = args.iter().map(|s| s.to_string()).collect();
+        let mut child = Command::new(env!("CARGO_BIN_EXE_seamstress"))
+            .args(["serve", "--listen", "127.0.0.1:0", "--data"])
+            .arg(data)
+            .args(&args)
+            .env_remove("SEAMSTRESS_TOKENS")
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("the server starts");
+        let mut line = String::new();
+        BufReader::new(child.stdout.take().unwrap())
+            .read_line(&mut line)
+            .expect("the server prints its address");
+        let addr = line
+            .trim()
+            .strip_prefix("listening on ")
+            .unwrap_or_else(|| panic!("unexpected first line {line:?}"))
+            .to_string();
+        Server {
+            child,
+            base: format!("http://{addr}"),
+            data: data.to_path_buf(),
+            args,
+        }
+    }
+
+    fn url(&self, path: &str) -> String {
+        format!("{}{path}", self.base)
+    }
+
+    fn kill(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+
+    /// Starts a new server on the same data folder with the same options.
+    fn restart(&mut self) {
+        self.kill();
+        let args: Vec<&str> = self.args.iter().map(String::as_str).collect();
+        *self = Server::start(&self.data, &args);
+    }
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        self.kill();
+    }
+}
+
+fn client() -> Client {
+    Client::builder()
+        .timeout(Duration::from_secs(300))
+        .build()
+        .unwrap()
+}
+
+/// A raw upload: `.glb` or self-contained `.gltf`.
+async fn submit_raw(c: &Client, s: &Server, bytes: Vec<u8>, name: &str, query: &str) -> Response {
+    let ct = if name.ends_with(".glb") {
+        "model/gltf-binary"
+    } else {
+        "model/gltf+json"
+    };
+    c.post(s.url(&format!("/v1/jobs?name={name}{query}")))
+        .header("content-type", ct)
+        .body(bytes)
+        .send()
+        .await
+        .unwrap()
+}
+
+/// A multipart upload of `model` and every other non-model file in its folder.
+fn form_for(model: &Path) -> Form {
+    let mut form = Form::new().part(
+        "model",
+        Part::bytes(std::fs::read(model).unwrap())
+            .file_name(model.file_name().unwrap().to_string_lossy().into_owned()),
+    );
+    for e in std::fs::read_dir(model.parent().unwrap()).unwrap() {
+        let p = e.unwrap().path();
+        let ext = p.extension().and_then(|x| x.to_str()).unwrap_or("");
+        if p.is_file() && !matches!(ext, "gltf" | "glb") {
+            form = form.part(
+                "files",
+                Part::bytes(std::fs::read(&p).unwrap())
+                    .file_name(p.file_name().unwrap().to_string_lossy().into_owned()),
+            );
+        }
+    }
+    form
+}
+
+async fn submit_form(c: &Client, s: &Server, form: Form) -> Response {
+    c.post(s.url("/v1/jobs"))
+        .multipart(form)
+        .send()
+        .await
+        .unwrap()
+}
+
+async fn json_of(r: Response) -> (StatusCode, Value) {
+    let status = r.status();
+    let ct = r
+        .headers()
+        .get("content-type")
+        .map(|v| v.to_str().unwrap().to_string())
+        .unwrap_or_default();
+    let body = r.bytes().await.unwrap();
+    let v = serde_json::from_slice(&body).unwrap_or_else(|e| {
+        panic!(
+            "{status}: not JSON ({e}, {ct}): {}",
+            String::from_utf8_lossy(&body)
+        )
+    });
+    assert!(ct.starts_with("application/json"), "{status}: {ct}");
+    (status, v)
+}
+
+/// Waits for a job to reach a final state.
+async fn finish(c: &Client, s: &Server, id: &str) -> Value {
+    let deadline = Instant::now() + Duration::from_secs(240);
+    loop {
+        let r = c
+            .get(s.url(&format!("/v1/jobs/{id}")))
+            .header("prefer", "wait=20")
+            .send()
+            .await
+            .unwrap();
+        let (status, job) = json_of(r).await;
+        assert_eq!(status, StatusCode::OK, "{job}");
+        let state = job["state"].as_str().unwrap();
+        if matches!(state, "succeeded" | "failed" | "canceled") {
+            return job;
+        }
+        assert!(Instant::now() < deadline, "job {id} still {state}");
+    }
+}
+
+async fn accepted(r: Response) -> Value {
+    let location = r
+        .headers()
+        .get("location")
+        .map(|v| v.to_str().unwrap().to_string());
+    let (status, job) = json_of(r).await;
+    assert_eq!(status, StatusCode::ACCEPTED, "{job}");
+    let id = job["id"].as_str().unwrap();
+    assert_eq!(location.unwrap(), format!("/v1/jobs/{id}"));
+    job
+}
+
+async fn file(c: &Client, s: &Server, id: &str, name: &str) -> Vec<u8> {
+    let r = c
+        .get(s.url(&format!("/v1/jobs/{id}/files/{name}")))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::OK, "{name}");
+    r.bytes().await.unwrap().to_vec()
+}
+
+async fn files_of(c: &Client, s: &Server, job: &Value) -> BTreeMap<String, Vec<u8>> {
+    let id = job["id"].as_str().unwrap();
+    let mut out = BTreeMap::new();
+    for f in job["files"].as_array().unwrap() {
+        let name = f["name"].as_str().unwrap();
+        out.insert(name.to_string(), file(c, s, id, name).await);
+    }
+    out
+}
+
+/// The same GLB with a different JSON chunk: equal work, different bytes
+/// (so the result cache does not answer).
+fn variant(glb: &[u8], n: u64) -> Vec<u8> {
+    let parts = seamstress::model::rewrite::split_glb(glb).unwrap();
+    let mut root: Value = serde_json::from_slice(parts.json).unwrap();
+    root["extras"] = json!({ "variant": n });
+    seamstress::model::rewrite::pack_glb(&serde_json::to_vec(&root).unwrap(), parts.bin)
+}
+
+fn without_timings(mut report: Value) -> Value {
+    for t in report["textures"].as_array_mut().unwrap() {
+        t.as_object_mut().unwrap().remove("timings_ms");
+    }
+    report
+}
+
+fn cli_process(model: &Path, out: &Path) {
+    let o = Command::new(env!("CARGO_BIN_EXE_seamstress"))
+        .arg("process")
+        .arg(model)
+        .arg("--out")
+        .arg(out)
+        .output()
+        .unwrap();
+    assert!(
+        o.status.success(),
+        "{}: {}",
+        model.display(),
+        String::from_utf8_lossy(&o.stderr)
+    );
+}
+
+enum Upload {
+    Raw,
+    Multipart,
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_shared_model_in_every_form_matches_process() {
+    let data = scratch("models");
+    let s = Server::start(&data, &["--workers", "2"]);
+    let c = client();
+    let cases: Vec<(&str, Upload)> = vec![
+        (
+            "BoxTextured/BoxTextured-glTF-Binary/BoxTextured.glb",
+            Upload::Raw,
+        ),
+        (
+            "BoxTextured/BoxTextured-glTF-Binary/BoxTextured.glb",
+            Upload::Multipart,
+        ),
+        (
+            "BoxTextured/BoxTextured-glTF/BoxTextured.gltf",
+            Upload::Multipart,
+        ),
+        (
+            "BoxTextured/BoxTextured-glTF-Embedded/BoxTextured.gltf",
+            Upload::Raw,
+        ),
+        (
+            "BoxTextured/BoxTextured-glTF-Embedded/BoxTextured.gltf",
+            Upload::Multipart,
+        ),
+        (
+            "TextureTransformTest/TextureTransformTest.gltf",
+            Upload::Multipart,
+        ),
+        ("cube/cube_gradient_128.glb", Upload::Raw),
+        ("cube/cube_bad_background_100.glb", Upload::Raw),
+        ("cube/cube_gradient_1024.glb", Upload::Raw),
+        ("Duck/Duck.gltf", Upload::Raw),
+        ("blub/blub.glb", Upload::Raw),
+        ("Fox/Fox.gltf", Upload::Multipart),
+    ];
+    // Submit everything first: the server works while the CLI runs.
+    let mut jobs = Vec::new();
+    for (rel, form) in &cases {
+        let path = assets().join(rel);
+        let name = path.file_name().unwrap().to_str().unwrap().to_string();
+        let r = match form {
+            Upload::Raw => submit_raw(&c, &s, std::fs::read(&path).unwrap(), &name, "").await,
+            Upload::Multipart => submit_form(&c, &s, form_for(&path)).await,
+        };
+        jobs.push(accepted(r).await);
+    }
+    let out = scratch("models-cli");
+    let expected: Vec<PathBuf> = {
+        let mut done: HashMap<&str, PathBuf> = HashMap::new();
+        let mut v = Vec::new();
+        for (rel, _) in &cases {
+            let dir = done
+                .entry(*rel)
+                .or_insert_with(|| {
+                    let dir = out.join(rel.replace('/', "_"));
+                    cli_process(&assets().join(rel), &dir);
+                    dir
+                })
+                .clone();
+            v.push(dir);
+        }
+        v
+    };
+    for (((rel, _), job), cli) in cases.iter().zip(&jobs).zip(&expected) {
+        let job = finish(&c, &s, job["id"].as_str().unwrap()).await;
+        assert_eq!(job["state"], "succeeded", "{rel}: {job}");
+        let served = files_of(&c, &s, &job).await;
+        let mut compared = 0;
+        for e in std::fs::read_dir(cli).unwrap() {
+            let p = e.unwrap().path();
+            let name = p.file_name().unwrap().to_str().unwrap().to_string();
+            let theirs = std::fs::read(&p).unwrap();
+            let ours = served
+                .get(&name)
+                .unwrap_or_else(|| panic!("{rel}: the service has no {name}"));
+            if name == "report.json" {
+                let a: Value = serde_json::from_slice(ours).unwrap();
+                let b: Value = serde_json::from_slice(&theirs).unwrap();
+                assert_eq!(without_timings(a.clone()), without_timings(b), "{rel}");
+                assert_eq!(job["report"], a, "{rel}: job report and report.json");
+            } else {
+                assert!(ours == &theirs, "{rel}: {name} differs from process output");
+            }
+            compared += 1;
+        }
+        assert!(compared >= 3, "{rel}: only {compared} files");
+        check_rewritten_model(rel, &job, &served);
+    }
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+/// The rewritten model references every DDS through MSFT_texture_dds, keeps
+/// the original images, and loads again with the job's files beside it.
+fn check_rewritten_model(rel: &str, job: &Value, files: &BTreeMap<String, Vec<u8>>) {
+    let name = job["input"]["name"].as_str().unwrap();
+    let main = files
+        .get(name)
+        .unwrap_or_else(|| panic!("{rel}: no rewritten model {name}"));
+    let root: Value = if name.ends_with(".glb") {
+        let parts = seamstress::model::rewrite::split_glb(main).unwrap();
+        serde_json::from_slice(parts.json).unwrap()
+    } else {
+        serde_json::from_slice(main).unwrap()
+    };
+    assert!(
+        root["extensionsUsed"]
+            .as_array()
+            .unwrap()
+            .contains(&json!("MSFT_texture_dds")),
+        "{rel}"
+    );
+    let images = root["images"].as_array().unwrap();
+    for t in job["report"]["textures"].as_array().unwrap() {
+        let image = t["image"].as_u64().unwrap();
+        let dds = t["files"]["dds"].as_str().unwrap();
+        let referencing: Vec<&Value> = root["textures"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|tex| tex["source"] == json!(image))
+            .collect();
+        assert!(!referencing.is_empty(), "{rel}");
+        for tex in referencing {
+            let k = tex["extensions"]["MSFT_texture_dds"]["source"]
+                .as_u64()
+                .unwrap_or_else(|| panic!("{rel}: texture without MSFT_texture_dds"))
+                as usize;
+            assert_eq!(images[k]["uri"], json!(dds), "{rel}");
+            assert_eq!(images[k]["mimeType"], json!("image/vnd-ms.dds"), "{rel}");
+        }
+    }
+    let model = seamstress::model::load_from_memory(
+        name,
+        main,
+        files,
+        &seamstress::model::LoadOptions::default(),
+    )
+    .unwrap_or_else(|e| panic!("{rel}: the rewritten model does not load: {e}"));
+    assert_eq!(
+        model.bindings.len(),
+        job["report"]["textures"].as_array().unwrap().len(),
+        "{rel}"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bad_input_gets_a_4xx_json_error() {
+    let data = scratch("negative");
+    let s = Server::start(
+        &data,
+        &[
+            "--workers",
+            "1",
+            "--max-texture-size",
+            "200",
+            "--max-body",
+            "256KiB",
+        ],
+    );
+    let c = client();
+    let mut models = Vec::new();
+    let mut stack = vec![assets().join("negative")];
+    while let Some(dir) = stack.pop() {
+        for e in std::fs::read_dir(&dir).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                stack.push(p);
+            } else if matches!(p.extension().and_then(|x| x.to_str()), Some("gltf" | "glb")) {
+                models.push(p);
+            }
+        }
+    }
+    assert!(models.len() >= 10);
+    for m in &models {
+        let name = m.file_name().unwrap().to_str().unwrap();
+        for raw in [true, false] {
+            let r = if raw && name.ends_with(".glb") {
+                submit_raw(&c, &s, std::fs::read(m).unwrap(), name, "").await
+            } else if raw {
+                continue;
+            } else {
+                submit_form(&c, &s, form_for(m)).await
+            };
+            let (status, err) = json_of(r).await;
+            assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{name}: {err}");
+            assert_eq!(err["code"], "invalid_model", "{name}");
+            let msg = err["message"].as_str().unwrap();
+            assert!(msg.contains(name) && !msg.contains('\n'), "{name}: {msg}");
+        }
+    }
+
+    let box_glb = assets().join("BoxTextured/BoxTextured-glTF-Binary/BoxTextured.glb");
+    let cases: Vec<(Response, StatusCode, &str)> = vec![
+        (
+            // 211² against a limit of 200, refused before decoding.
+            submit_raw(
+                &c,
+                &s,
+                std::fs::read(&box_glb).unwrap(),
+                "BoxTextured.glb",
+                "",
+            )
+            .await,
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "invalid_model",
+        ),
+        (
+            submit_raw(&c, &s, b"not a model".to_vec(), "x.glb", "").await,
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "invalid_model",
+        ),
+        (
+            submit_raw(&c, &s, Vec::new(), "x.gltf", "").await,
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "invalid_model",
+        ),
+        (
+            submit_raw(
+                &c,
+                &s,
+                std::fs::read(assets().join("blub/blub.glb")).unwrap(),
+                "blub.glb",
+                "",
+            )
+            .await,
+            StatusCode::PAYLOAD_TOO_LARGE,
+            "payload_too_large",
+        ),
+        (
+            submit_raw(
+                &c,
+                &s,
+                std::fs::read(&box_glb).unwrap(),
+                "BoxTextured.glb",
+                "&mode=sideways",
+            )
+            .await,
+            StatusCode::BAD_REQUEST,
+            "invalid_options",
+        ),
+        (
+            c.post(s.url("/v1/jobs"))
+                .header("content-type", "text/plain")
+                .body("hello")
+                .send()
+                .await
+                .unwrap(),
+            StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            "unsupported_media_type",
+        ),
+        (
+            submit_form(
+                &c,
+                &s,
+                Form::new().part("x", Part::bytes(b"{}".to_vec()).file_name("notes.txt")),
+            )
+            .await,
+            StatusCode::BAD_REQUEST,
+            "bad_request",
+        ),
+        (
+            submit_form(
+                &c,
+                &s,
+                form_for(&assets().join("cube/cube_gradient_128.glb"))
+                    .text("options", "{\"colour\":\"red\"}"),
+            )
+            .await,
+            StatusCode::BAD_REQUEST,
+            "invalid_options",
+        ),
+        (
+            submit_form(
+                &c,
+                &s,
+                Form::new().part("m", Part::bytes(b"{}".to_vec()).file_name("../up.gltf")),
+            )
+            .await,
+            StatusCode::BAD_REQUEST,
+            "bad_request",
+        ),
+        (
+            c.get(s.url("/v1/jobs/0123456789abcdef0123456789abcdef"))
+                .send()
+                .await
+                .unwrap(),
+            StatusCode::NOT_FOUND,
+            "not_found",
+        ),
+        (
+            c.put(s.url("/v1/jobs")).send().await.unwrap(),
+            StatusCode::METHOD_NOT_ALLOWED,
+            "method_not_allowed",
+        ),
+        (
+            c.get(s.url("/v2/nothing")).send().await.unwrap(),
+            StatusCode::NOT_FOUND,
+            "not_found",
+        ),
+    ];
+    for (i, (r, status, code)) in cases.into_iter().enumerate() {
+        let (got, err) = json_of(r).await;
+        assert_eq!(got, status, "case {i}: {err}");
+        assert_eq!(err["code"], code, "case {i}: {err}");
+        assert!(err["message"].as_str().is_some_and(|m| !m.is_empty()));
+    }
+
+    // A URI leaving the upload is refused, even when the file is uploaded.
+    let gltf =
+        std::fs::read_to_string(assets().join("BoxTextured/BoxTextured-glTF/BoxTextured.gltf"))
+            .unwrap()
+            .replace("BoxTextured0.bin", "../BoxTextured0.bin");
+    let form = Form::new()
+        .part("m", Part::bytes(gltf.into_bytes()).file_name("Escape.gltf"))
+        .part(
+            "f",
+            Part::bytes(
+                std::fs::read(assets().join("BoxTextured/BoxTextured-glTF/BoxTextured0.bin"))
+                    .unwrap(),
+            )
+            .file_name("BoxTextured0.bin"),
+        );
+    let (status, err) = json_of(submit_form(&c, &s, form).await).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{err}");
+    assert!(
+        err["message"].as_str().unwrap().contains("refused"),
+        "{err}"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn queue_limit_cancellation_and_time_limit() {
+    let data = scratch("queue");
+    let s = Server::start(&data, &["--workers", "1", "--queue-size", "1"]);
+    let c = client();
+    let cube = std::fs::read(assets().join("cube/cube_gradient_1024.glb")).unwrap();
+
+    let a = accepted(submit_raw(&c, &s, variant(&cube, 1), "a.glb", "").await).await;
+    let a_id = a["id"].as_str().unwrap().to_string();
+    // Wait until the worker has taken it, so that the queue is empty again.
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let (_, j) = json_of(
+            c.get(s.url(&format!("/v1/jobs/{a_id}")))
+                .send()
+                .await
+                .unwrap(),
+        )
+        .await;
+        if j["state"] == "running" {
+            break;
+        }
+        assert_eq!(j["state"], "queued", "{j}");
+        assert!(Instant::now() < deadline);
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let b = accepted(submit_raw(&c, &s, variant(&cube, 2), "b.glb", "").await).await;
+    assert_eq!(b["state"], "queued");
+    let r = submit_raw(&c, &s, variant(&cube, 3), "c.glb", "").await;
+    assert!(r.headers().get("retry-after").is_some());
+    let (status, err) = json_of(r).await;
+    assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE, "{err}");
+    assert_eq!(err["code"], "queue_full");
+
+    // Cancel the queued job, then the running one.
+    for id in [b["id"].as_str().unwrap(), a_id.as_str()] {
+        let (status, j) = json_of(
+            c.delete(s.url(&format!("/v1/jobs/{id}")))
+                .send()
+                .await
+                .unwrap(),
+        )
+        .await;
+        assert_eq!(status, StatusCode::OK, "{j}");
+        assert_eq!(j["state"], "canceled");
+        assert_eq!(finish(&c, &s, id).await["state"], "canceled");
+    }
+    let r = c
+        .get(s.url(&format!("/v1/jobs/{a_id}/files/report.json")))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::CONFLICT);
+    // A canceled job is finished: deleting it removes it.
+    let r = c
+        .delete(s.url(&format!("/v1/jobs/{a_id}")))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::NO_CONTENT);
+    let r = c
+        .get(s.url(&format!("/v1/jobs/{a_id}")))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::NOT_FOUND);
+    drop(s);
+
+    // The per-job time limit.
+    let s = Server::start(&data, &["--workers", "1", "--job-timeout", "1s"]);
+    let j = accepted(submit_raw(&c, &s, variant(&cube, 4), "d.glb", "").await).await;
+    let j = finish(&c, &s, j["id"].as_str().unwrap()).await;
+    assert_eq!(j["state"], "failed", "{j}");
+    assert_eq!(j["error"]["code"], "timeout", "{j}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_token_sees_only_its_own_jobs() {
+    let data = scratch("tokens");
+    let s = Server::start(
+        &data,
+        &[
+            "--workers",
+            "1",
+            "--token",
+            "alice:secret-a",
+            "--token",
+            "bob:secret-b",
+        ],
+    );
+    let c = client();
+    let glb = std::fs::read(assets().join("cube/cube_bad_background_100.glb")).unwrap();
+    let r = c
+        .post(s.url("/v1/jobs"))
+        .header("content-type", "model/gltf-binary")
+        .body(glb.clone())
+        .send()
+        .await
+        .unwrap();
+    let (status, err) = json_of(r).await;
+    assert_eq!(status, StatusCode::UNAUTHORIZED, "{err}");
+    assert_eq!(err["code"], "unauthorized");
+    let r = c
+        .get(s.url("/v1/jobs"))
+        .bearer_auth("secret-c")
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::UNAUTHORIZED);
+
+    let r = c
+        .post(s.url("/v1/jobs"))
+        .bearer_auth("secret-a")
+        .header("content-type", "model/gltf-binary")
+        .header("prefer", "wait=60")
+        .body(glb)
+        .send()
+        .await
+        .unwrap();
+    let job = accepted(r).await;
+    assert_eq!(job["state"], "succeeded", "{job}");
+    let id = job["id"].as_str().unwrap();
+    for (path, method) in [
+        (format!("/v1/jobs/{id}"), "GET"),
+        (format!("/v1/jobs/{id}/files/report.json"), "GET"),
+        (format!("/v1/jobs/{id}"), "DELETE"),
+    ] {
+        let req = if method == "GET" {
+            c.get(s.url(&path))
+        } else {
+            c.delete(s.url(&path))
+        };
+        let (status, err) = json_of(req.bearer_auth("secret-b").send().await.unwrap()).await;
+        assert_eq!(status, StatusCode::NOT_FOUND, "{method} {path}: {err}");
+    }
+    let (_, list) = json_of(
+        c.get(s.url("/v1/jobs"))
+            .bearer_auth("secret-b")
+            .send()
+            .await
+            .unwrap(),
+    )
+    .await;
+    assert_eq!(list["jobs"], json!([]));
+    let (_, list) = json_of(
+        c.get(s.url("/v1/jobs"))
+            .bearer_auth("secret-a")
+            .send()
+            .await
+            .unwrap(),
+    )
+    .await;
+    assert_eq!(list["jobs"][0]["id"], json!(id));
+    let r = c
+        .get(s.url(&format!("/v1/jobs/{id}/files/report.json")))
+        .bearer_auth("secret-a")
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    // Operations routes need no token.
+    for path in ["/healthz", "/readyz", "/metrics", "/openapi.yaml"] {
+        let r = c.get(s.url(path)).send().await.unwrap();
+        assert_eq!(r.status(), StatusCode::OK, "{path}");
+    }
+
+    // Without tokens, a non-loopback address is refused unless told.
+    let o = Command::new(env!("CARGO_BIN_EXE_seamstress"))
+        .args(["serve", "--listen", "0.0.0.0:0", "--data"])
+        .arg(&data)
+        .env_remove("SEAMSTRESS_TOKENS")
+        .env_remove("SEAMSTRESS_INSECURE_OPEN")
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--insecure-open"));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn protocol_idempotency_cache_etags_paging_and_deletion() {
+    let data = scratch("protocol");
+    let s = Server::start(&data, &["--workers", "2"]);
+    let c = client();
+    let glb = std::fs::read(assets().join("cube/cube_gradient_128.glb")).unwrap();
+
+    // Submit and wait in one call.
+    let r = c
+        .post(s.url("/v1/jobs?name=cube.glb&bc1_level=fast"))
+        .header("content-type", "model/gltf-binary")
+        .header("prefer", "wait=120")
+        .header("idempotency-key", "k-1")
+        .body(glb.clone())
+        .send()
+        .await
+        .unwrap();
+    assert!(r.headers().get("x-request-id").is_some());
+    let first = accepted(r).await;
+    assert_eq!(first["state"], "succeeded", "{first}");
+    assert_eq!(first["options"]["bc1_level"], "fast");
+    assert_eq!(first["report"]["input"], "cube.glb");
+    assert_eq!(first["progress"]["fraction"], json!(1.0));
+    let id = first["id"].as_str().unwrap();
+
+    // Same key, same upload: the same job. Different upload: 422.
+    let again = accepted(
+        c.post(s.url("/v1/jobs?name=cube.glb&bc1_level=fast"))
+            .header("content-type", "model/gltf-binary")
+            .header("idempotency-key", "k-1")
+            .body(glb.clone())
+            .send()
+            .await
+            .unwrap(),
+    )
+    .await;
+    assert_eq!(again["id"], first["id"]);
+    let (status, err) = json_of(
+        c.post(s.url("/v1/jobs?name=cube.glb"))
+            .header("content-type", "model/gltf-binary")
+            .header("idempotency-key", "k-1")
+            .body(glb.clone())
+            .send()
+            .await
+            .unwrap(),
+    )
+    .await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY);
+    assert_eq!(err["code"], "idempotency_key_reused");
+
+    // Same bytes and options, no key: a new job answered from the cache.
+    let cached = accepted(
+        c.post(s.url("/v1/jobs?name=cube.glb&bc1_level=fast"))
+            .header("content-type", "model/gltf-binary")
+            .body(glb.clone())
+            .send()
+            .await
+            .unwrap(),
+    )
+    .await;
+    assert_ne!(cached["id"], first["id"]);
+    assert_eq!(cached["state"], "succeeded");
+    assert_eq!(cached["cached"], true);
+    assert_eq!(cached["report"], first["report"]);
+    let a = files_of(&c, &s, &first).await;
+    assert_eq!(files_of(&c, &s, &cached).await, a);
+
+    // Strong ETags and 304.
+    let url = s.url(&format!("/v1/jobs/{id}/files/report.json"));
+    let r = c.get(&url).send().await.unwrap();
+    assert_eq!(r.headers()["content-type"], "application/json");
+    let etag = r.headers()["etag"].to_str().unwrap().to_string();
+    assert!(etag.starts_with('"') && !etag.starts_with("W/"));
+    let r = c
+        .get(&url)
+        .header("if-none-match", &etag)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::NOT_MODIFIED);
+    let dds = first["report"]["textures"][0]["files"]["dds"]
+        .as_str()
+        .unwrap();
+    let r = c
+        .get(s.url(&format!("/v1/jobs/{id}/files/{dds}")))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.headers()["content-type"], "image/vnd-ms.dds");
+    assert!(r.bytes().await.unwrap().starts_with(b"DDS "));
+    let r = c
+        .get(s.url(&format!("/v1/jobs/{id}/files/nothing.dds")))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::NOT_FOUND);
+
+    // Paging, newest first.
+    let (_, p1) = json_of(c.get(s.url("/v1/jobs?limit=1")).send().await.unwrap()).await;
+    assert_eq!(p1["jobs"][0]["id"], cached["id"]);
+    assert!(p1["jobs"][0].get("report").is_none());
+    let cursor = p1["next_cursor"].as_str().unwrap();
+    let (_, p2) = json_of(
+        c.get(s.url(&format!("/v1/jobs?limit=1&cursor={cursor}")))
+            .send()
+            .await
+            .unwrap(),
+    )
+    .await;
+    assert_eq!(p2["jobs"][0]["id"], first["id"]);
+    assert_eq!(p2["next_cursor"], Value::Null);
+
+    // Deleting a finished job removes it and its files, not the cached copy.
+    let r = c
+        .delete(s.url(&format!("/v1/jobs/{id}")))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::NO_CONTENT);
+    assert_eq!(
+        c.get(&url).send().await.unwrap().status(),
+        StatusCode::NOT_FOUND
+    );
+    assert_eq!(files_of(&c, &s, &cached).await, a);
+
+    // Operations.
+    let metrics = c
+        .get(s.url("/metrics"))
+        .send()
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
+    for name in [
+        "seamstress_queue_depth",
+        "seamstress_jobs{state=\"succeeded\"}",
+        "seamstress_stage_duration_seconds_bucket{stage=\"process\"",
+        "seamstress_bytes_in_total",
+        "seamstress_bytes_out_total",
+    ] {
+        assert!(metrics.contains(name), "{name} missing from /metrics");
+    }
+    let spec = c
+        .get(s.url("/openapi.yaml"))
+        .send()
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
+    assert_eq!(
+        spec,
+        std::fs::read_to_string(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("openapi.yaml"))
+            .unwrap()
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn killed_server_restarts_and_finishes_every_job() {
+    let data = scratch("sigkill");
+    // No grace: on SIGTERM the running job goes straight back to the queue.
+    let mut s = Server::start(&data, &["--workers", "1", "--grace", "0"]);
+    let c = client();
+    let cube = std::fs::read(assets().join("cube/cube_gradient_1024.glb")).unwrap();
+    let small = std::fs::read(assets().join("cube/cube_gradient_128.glb")).unwrap();
+    let mut ids = Vec::new();
+    let first = accepted(submit_raw(&c, &s, variant(&cube, 10), "big.glb", "").await).await;
+    ids.push(first["id"].as_str().unwrap().to_string());
+    for n in 0..3 {
+        let j = accepted(submit_raw(&c, &s, variant(&small, n), "small.glb", "").await).await;
+        ids.push(j["id"].as_str().unwrap().to_string());
+    }
+    // Kill it while the first job runs and the others wait.
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let (_, j) = json_of(
+            c.get(s.url(&format!("/v1/jobs/{}", ids[0])))
+                .send()
+                .await
+                .unwrap(),
+        )
+        .await;
+        if j["state"] == "running" {
+            break;
+        }
+        assert!(Instant::now() < deadline, "{j}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    s.restart();
+    for id in &ids {
+        let j = finish(&c, &s, id).await;
+        assert_eq!(j["state"], "succeeded", "{j}");
+        let files = files_of(&c, &s, &j).await;
+        assert!(files.contains_key("report.json"));
+    }
+    let (_, first) = json_of(
+        c.get(s.url(&format!("/v1/jobs/{}", ids[0])))
+            .send()
+            .await
+            .unwrap(),
+    )
+    .await;
+    assert_eq!(first["attempts"], 2, "{first}");
+
+    // SIGTERM: the running job is re-queued after the grace period and
+    // finishes after the next start.
+    s.restart();
+    let j = accepted(submit_raw(&c, &s, variant(&cube, 11), "big.glb", "").await).await;
+    let id = j["id"].as_str().unwrap().to_string();
+    loop {
+        let (_, j) = json_of(
+            c.get(s.url(&format!("/v1/jobs/{id}")))
+                .send()
+                .await
+                .unwrap(),
+        )
+        .await;
+        if j["state"] == "running" {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let killed = Command::new("kill")
+        .args(["-TERM", &s.child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(killed.success());
+    let status = s.child.wait().unwrap();
+    assert!(status.success(), "{status:?}");
+    s.restart();
+    let j = finish(&c, &s, &id).await;
+    assert_eq!(j["state"], "succeeded", "{j}");
+    let _ = std::fs::remove_dir_all(&data);
+}
+
+/// Paths and methods of `openapi.yaml`, read line by line: `  /path:` then
+/// `    get:` and the like.
+fn spec_routes(spec: &str) -> Vec<(String, String)> {
+    let mut out = Vec::new();
+    let mut in_paths = false;
+    let mut path = None;
+    for line in spec.lines().filter(|l| !l.trim().is_empty()) {
+        if !line.starts_with(' ') {
+            in_paths = line.trim_end() == "paths:";
+            continue;
+        }
+        if !in_paths {
+            continue;
+        }
+        if let Some(p) = line.strip_prefix("  /") {
+            path = Some(format!("/{}", p.trim_end().trim_end_matches(':')));
+        } else if let (Some(p), Some(m)) = (&path, line.strip_prefix("    ")) {
+            let m = m.trim_end().trim_end_matches(':');
+            if ["get", "post", "put", "delete", "patch", "head", "options"].contains(&m) {
+                out.push((m.to_string(), p.clone()));
+            }
+        }
+    }
+    out.sort();
+    out
+}
+
+#[test]
+fn every_route_is_in_openapi_and_the_reverse() {
+    let spec =
+        std::fs::read_to_string(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("openapi.yaml"))
+            .unwrap();
+    assert!(spec.starts_with("openapi: 3.1"));
+    let mut routes = seamstress::service::route_table();
+    routes.sort();
+    let documented = spec_routes(&spec);
+    assert!(documented.len() >= 9, "{documented:?}");
+    assert_eq!(routes, documented);
+    assert_eq!(seamstress::service::OPENAPI, spec);
+}
