@@ -13,8 +13,8 @@
 //! Images: the shared models' textures (Fox, blub, Duck), the photo
 //! `skimage/data/astronaut.png` from the PyPI package scikit-image (skipped
 //! when the package is not installed; `BC1_BENCH_PHOTO=path.png` overrides),
-//! and any PNGs listed in `BC1_BENCH_EXTRA` (comma-separated), such as an
-//! erased texture from the engine.
+//! the engine's erased texture of `cube_gradient_1024.glb` (a smooth baked
+//! atlas), and any PNGs listed in `BC1_BENCH_EXTRA` (comma-separated).
 //!
 //! Other knobs: `BC1_BENCH_ONLY=fox,duck` (image names), `BC1_BENCH_ENCODERS=
 //! fast,default,best,ispc,texpresso,quicktex10,quicktex18`, `SHARED_DIR`
@@ -180,6 +180,23 @@ fn skimage_photo() -> Option<(PathBuf, String)> {
     path.exists().then_some((path, version))
 }
 
+/// The engine's erased PNG of the model's first texture.
+fn erased_png(path: &Path) -> Result<Vec<u8>, String> {
+    use seamstress::model::{self, LoadOptions};
+    use seamstress::pipeline::{self, Format, ProcessOptions};
+    let m = model::load(path, &LoadOptions::default()).map_err(|e| e.to_string())?;
+    let opts = ProcessOptions {
+        format: Format::Png,
+        ..ProcessOptions::default()
+    };
+    let out = pipeline::run(&m, "model", 0, &opts).map_err(|e| e.to_string())?;
+    out.files
+        .into_iter()
+        .find(|f| f.name.ends_with(".erased.png"))
+        .map(|f| f.bytes)
+        .ok_or_else(|| "no erased texture".to_string())
+}
+
 fn load_images() -> Vec<Image> {
     let shared =
         PathBuf::from(std::env::var("SHARED_DIR").unwrap_or_else(|_| "/work/shared".into()));
@@ -196,6 +213,19 @@ fn load_images() -> Vec<Image> {
             Ok(img) => images.push(img),
             Err(e) => println!("skipping {name}: {e}"),
         }
+    }
+    // A smooth baked atlas as the engine leaves it: the erased texture of
+    // cube_gradient_1024 (where encoders differ most).
+    let cube = shared.join("assets/cube/cube_gradient_1024.glb");
+    match erased_png(&cube).and_then(|png| {
+        Image::from_png(
+            "cube-erased",
+            format!("{} erased (local mode)", cube.display()),
+            &png,
+        )
+    }) {
+        Ok(img) => images.push(img),
+        Err(e) => println!("skipping the erased cube: {e}"),
     }
     let photo = match std::env::var("BC1_BENCH_PHOTO") {
         Ok(p) => Some((PathBuf::from(&p), format!("{p} (BC1_BENCH_PHOTO)"))),
