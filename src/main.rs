@@ -76,7 +76,12 @@ struct ProcessArgs {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
-    init_logging(cli.log_format);
+    // A one-shot command stays quiet; a service logs every request and job.
+    let default_level = match cli.command {
+        Command::Process(_) => "warn",
+        Command::Serve(_) => "info",
+    };
+    init_logging(cli.log_format, default_level);
     match cli.command {
         Command::Process(args) => match process(&args) {
             Ok(()) => ExitCode::SUCCESS,
@@ -99,9 +104,9 @@ fn main() -> ExitCode {
     }
 }
 
-fn init_logging(format: LogFormat) {
+fn init_logging(format: LogFormat, default_level: &str) {
     let filter = tracing_subscriber::EnvFilter::try_from_env("SEAMSTRESS_LOG")
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn"));
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default_level));
     let builder = tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr);
