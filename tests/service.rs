@@ -90,6 +90,14 @@ fn client() -> Client {
 }
 
 /// A raw upload: `.glb` or self-contained `.gltf`.
+async fn get(c: &Client, s: &Server, path: &str) -> Response {
+    c.get(s.url(path)).send().await.unwrap()
+}
+
+async fn delete(c: &Client, s: &Server, path: &str) -> Response {
+    c.delete(s.url(path)).send().await.unwrap()
+}
+
 async fn submit_raw(c: &Client, s: &Server, bytes: Vec<u8>, name: &str, query: &str) -> Response {
     let ct = if name.ends_with(".glb") {
         "model/gltf-binary"
@@ -184,11 +192,7 @@ async fn accepted(r: Response) -> Value {
 }
 
 async fn file(c: &Client, s: &Server, id: &str, name: &str) -> Vec<u8> {
-    let r = c
-        .get(s.url(&format!("/v1/jobs/{id}/files/{name}")))
-        .send()
-        .await
-        .unwrap();
+    let r = get(c, s, &format!("/v1/jobs/{id}/files/{name}")).await;
     assert_eq!(r.status(), StatusCode::OK, "{name}");
     r.bytes().await.unwrap().to_vec()
 }
@@ -524,10 +528,7 @@ async fn bad_input_gets_a_4xx_json_error() {
             "bad_request",
         ),
         (
-            c.get(s.url("/v1/jobs/0123456789abcdef0123456789abcdef"))
-                .send()
-                .await
-                .unwrap(),
+            get(&c, &s, "/v1/jobs/0123456789abcdef0123456789abcdef").await,
             StatusCode::NOT_FOUND,
             "not_found",
         ),
@@ -584,13 +585,7 @@ async fn queue_limit_cancellation_and_time_limit() {
     // Wait until the worker has taken it, so that the queue is empty again.
     let deadline = Instant::now() + Duration::from_secs(60);
     loop {
-        let (_, j) = json_of(
-            c.get(s.url(&format!("/v1/jobs/{a_id}")))
-                .send()
-                .await
-                .unwrap(),
-        )
-        .await;
+        let (_, j) = json_of(get(&c, &s, &format!("/v1/jobs/{a_id}")).await).await;
         if j["state"] == "running" {
             break;
         }
@@ -608,35 +603,17 @@ async fn queue_limit_cancellation_and_time_limit() {
 
     // Cancel the queued job, then the running one.
     for id in [b["id"].as_str().unwrap(), a_id.as_str()] {
-        let (status, j) = json_of(
-            c.delete(s.url(&format!("/v1/jobs/{id}")))
-                .send()
-                .await
-                .unwrap(),
-        )
-        .await;
+        let (status, j) = json_of(delete(&c, &s, &format!("/v1/jobs/{id}")).await).await;
         assert_eq!(status, StatusCode::OK, "{j}");
         assert_eq!(j["state"], "canceled");
         assert_eq!(finish(&c, &s, id).await["state"], "canceled");
     }
-    let r = c
-        .get(s.url(&format!("/v1/jobs/{a_id}/files/report.json")))
-        .send()
-        .await
-        .unwrap();
+    let r = get(&c, &s, &format!("/v1/jobs/{a_id}/files/report.json")).await;
     assert_eq!(r.status(), StatusCode::CONFLICT);
     // A canceled job is finished: deleting it removes it.
-    let r = c
-        .delete(s.url(&format!("/v1/jobs/{a_id}")))
-        .send()
-        .await
-        .unwrap();
+    let r = delete(&c, &s, &format!("/v1/jobs/{a_id}")).await;
     assert_eq!(r.status(), StatusCode::NO_CONTENT);
-    let r = c
-        .get(s.url(&format!("/v1/jobs/{a_id}")))
-        .send()
-        .await
-        .unwrap();
+    let r = get(&c, &s, &format!("/v1/jobs/{a_id}")).await;
     assert_eq!(r.status(), StatusCode::NOT_FOUND);
     drop(s);
 
@@ -833,18 +810,10 @@ async fn protocol_idempotency_cache_etags_paging_and_deletion() {
     let dds = first["report"]["textures"][0]["files"]["dds"]
         .as_str()
         .unwrap();
-    let r = c
-        .get(s.url(&format!("/v1/jobs/{id}/files/{dds}")))
-        .send()
-        .await
-        .unwrap();
+    let r = get(&c, &s, &format!("/v1/jobs/{id}/files/{dds}")).await;
     assert_eq!(r.headers()["content-type"], "image/vnd-ms.dds");
     assert!(r.bytes().await.unwrap().starts_with(b"DDS "));
-    let r = c
-        .get(s.url(&format!("/v1/jobs/{id}/files/nothing.dds")))
-        .send()
-        .await
-        .unwrap();
+    let r = get(&c, &s, &format!("/v1/jobs/{id}/files/nothing.dds")).await;
     assert_eq!(r.status(), StatusCode::NOT_FOUND);
 
     // Paging, newest first.
@@ -852,22 +821,12 @@ async fn protocol_idempotency_cache_etags_paging_and_deletion() {
     assert_eq!(p1["jobs"][0]["id"], cached["id"]);
     assert!(p1["jobs"][0].get("report").is_none());
     let cursor = p1["next_cursor"].as_str().unwrap();
-    let (_, p2) = json_of(
-        c.get(s.url(&format!("/v1/jobs?limit=1&cursor={cursor}")))
-            .send()
-            .await
-            .unwrap(),
-    )
-    .await;
+    let (_, p2) = json_of(get(&c, &s, &format!("/v1/jobs?limit=1&cursor={cursor}")).await).await;
     assert_eq!(p2["jobs"][0]["id"], first["id"]);
     assert_eq!(p2["next_cursor"], Value::Null);
 
     // Deleting a finished job removes it and its files, not the cached copy.
-    let r = c
-        .delete(s.url(&format!("/v1/jobs/{id}")))
-        .send()
-        .await
-        .unwrap();
+    let r = delete(&c, &s, &format!("/v1/jobs/{id}")).await;
     assert_eq!(r.status(), StatusCode::NO_CONTENT);
     assert_eq!(
         c.get(&url).send().await.unwrap().status(),
@@ -876,14 +835,7 @@ async fn protocol_idempotency_cache_etags_paging_and_deletion() {
     assert_eq!(files_of(&c, &s, &cached).await, a);
 
     // Operations.
-    let metrics = c
-        .get(s.url("/metrics"))
-        .send()
-        .await
-        .unwrap()
-        .text()
-        .await
-        .unwrap();
+    let metrics = get(&c, &s, "/metrics").await.text().await.unwrap();
     for name in [
         "seamstress_queue_depth",
         "seamstress_jobs{state=\"succeeded\"}",
@@ -893,14 +845,7 @@ async fn protocol_idempotency_cache_etags_paging_and_deletion() {
     ] {
         assert!(metrics.contains(name), "{name} missing from /metrics");
     }
-    let spec = c
-        .get(s.url("/openapi.yaml"))
-        .send()
-        .await
-        .unwrap()
-        .text()
-        .await
-        .unwrap();
+    let spec = get(&c, &s, "/openapi.yaml").await.text().await.unwrap();
     assert_eq!(
         spec,
         std::fs::read_to_string(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("openapi.yaml"))
@@ -926,13 +871,7 @@ async fn killed_server_restarts_and_finishes_every_job() {
     // Kill it while the first job runs and the others wait.
     let deadline = Instant::now() + Duration::from_secs(60);
     loop {
-        let (_, j) = json_of(
-            c.get(s.url(&format!("/v1/jobs/{}", ids[0])))
-                .send()
-                .await
-                .unwrap(),
-        )
-        .await;
+        let (_, j) = json_of(get(&c, &s, &format!("/v1/jobs/{}", ids[0])).await).await;
         if j["state"] == "running" {
             break;
         }
@@ -946,13 +885,7 @@ async fn killed_server_restarts_and_finishes_every_job() {
         let files = files_of(&c, &s, &j).await;
         assert!(files.contains_key("report.json"));
     }
-    let (_, first) = json_of(
-        c.get(s.url(&format!("/v1/jobs/{}", ids[0])))
-            .send()
-            .await
-            .unwrap(),
-    )
-    .await;
+    let (_, first) = json_of(get(&c, &s, &format!("/v1/jobs/{}", ids[0])).await).await;
     assert_eq!(first["attempts"], 2, "{first}");
 
     // SIGTERM: the running job is re-queued after the grace period and
@@ -961,13 +894,7 @@ async fn killed_server_restarts_and_finishes_every_job() {
     let j = accepted(submit_raw(&c, &s, variant(&cube, 11), "big.glb", "").await).await;
     let id = j["id"].as_str().unwrap().to_string();
     loop {
-        let (_, j) = json_of(
-            c.get(s.url(&format!("/v1/jobs/{id}")))
-                .send()
-                .await
-                .unwrap(),
-        )
-        .await;
+        let (_, j) = json_of(get(&c, &s, &format!("/v1/jobs/{id}")).await).await;
         if j["state"] == "running" {
             break;
         }

@@ -161,20 +161,22 @@ pub fn erase(
 
     let max_radius = grid.width.max(grid.height);
     let dist = distance_from(grid, &classes.seam, max_radius);
-    if opts.full {
-        let band: Vec<bool> = movable.clone();
-        let x = solve_band(
+    let solve = |band: &[bool]| {
+        solve_band(
             grid,
             input,
             channels,
             classes,
             &terms,
-            &band,
+            band,
             &dist,
             change,
             w,
             opts.solver,
-        )?;
+        )
+    };
+    if opts.full {
+        let x = solve(&movable)?;
         let stats = EraseStats {
             unknowns: x.1,
             band_radius: None,
@@ -194,18 +196,7 @@ pub fn erase(
             .zip(&movable)
             .map(|(&d, &m)| m && (d as usize) <= radius)
             .collect();
-        let (out, unknowns) = solve_band(
-            grid,
-            input,
-            channels,
-            classes,
-            &terms,
-            &band,
-            &dist,
-            change,
-            w,
-            opts.solver,
-        )?;
+        let (out, unknowns) = solve(&band)?;
         solves += 1;
         let edge = max_change_at(&out, input, channels, &dist, &band, radius);
         let leak = edge * ratio;

@@ -252,11 +252,8 @@ mod tests {
         assert_eq!(cells, vec![[0, 0], [1, 0], [2, 0]]);
     }
 
-    #[test]
-    fn gauss_pieces_integrate_seam_difference_exactly() {
-        // Brute force: midpoint rule with 200k samples vs the exact quadrature.
-        let g = grid(8);
-        let data = noise(64);
+    /// Two half-edges of a seam, crossing many cells at unrelated angles.
+    fn seam_pair() -> (Segment, Segment) {
         let e1 = Segment {
             start: [0.3, 1.7],
             end: [5.9, 3.2],
@@ -265,6 +262,15 @@ mod tests {
             start: [6.1, 6.4],
             end: [2.2, 4.05],
         };
+        (e1, e2)
+    }
+
+    #[test]
+    fn gauss_pieces_integrate_seam_difference_exactly() {
+        // Brute force: midpoint rule with 200k samples vs the exact quadrature.
+        let g = grid(8);
+        let data = noise(64);
+        let (e1, e2) = seam_pair();
         let mut pts = Vec::new();
         seam_difference_points(&g, e1, e2, 1.0, &mut pts);
         let exact: f64 = pts
@@ -309,14 +315,7 @@ mod tests {
     fn derivative_points_integrate_c1_exactly() {
         let g = grid(8);
         let data = noise(64);
-        let e1 = Segment {
-            start: [0.3, 1.7],
-            end: [5.9, 3.2],
-        };
-        let e2 = Segment {
-            start: [6.1, 6.4],
-            end: [2.2, 4.05],
-        };
+        let (e1, e2) = seam_pair();
         let n1 = e1.inward_normal([3.0, 0.0]).unwrap();
         let n2 = e2.inward_normal([6.0, 3.0]).unwrap();
         let mut pts = Vec::new();
