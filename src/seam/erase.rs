@@ -161,7 +161,8 @@ pub fn erase(
 
     let max_radius = grid.width.max(grid.height);
     let dist = distance_from(grid, &classes.seam, max_radius);
-    let solve = |band: &[bool]| {
+    // `start`: the texel values an iterative solve starts from.
+    let solve = |band: &[bool], start: &[f32]| {
         solve_band(
             grid,
             input,
@@ -173,10 +174,11 @@ pub fn erase(
             change,
             w,
             opts.solver,
+            start,
         )
     };
     if opts.full {
-        let x = solve(&movable)?;
+        let x = solve(&movable, input)?;
         let stats = EraseStats {
             unknowns: x.1,
             band_radius: None,
@@ -190,13 +192,16 @@ pub fn erase(
     let tol = opts.band_tolerance_levels / 255.0;
     let mut radius = ((4.0 * decay_len).ceil() as usize).max(4).min(max_radius);
     let mut solves = 0;
+    // A wider band starts from the narrower band's solution, which is already
+    // right near the seams.
+    let mut last: Option<Vec<f32>> = None;
     loop {
         let band: Vec<bool> = dist
             .iter()
             .zip(&movable)
             .map(|(&d, &m)| m && (d as usize) <= radius)
             .collect();
-        let (out, unknowns) = solve(&band)?;
+        let (out, unknowns) = solve(&band, last.as_deref().unwrap_or(input))?;
         solves += 1;
         let edge = max_change_at(&out, input, channels, &dist, &band, radius);
         let leak = edge * ratio;
@@ -216,6 +221,7 @@ pub fn erase(
         }
         let more = ((leak / tol).ln() * decay_len).ceil() as usize + 1;
         radius = (radius + more).min(max_radius);
+        last = Some(out);
     }
 }
 
@@ -347,6 +353,7 @@ fn solve_band(
     change: f64,
     w: &EraseWeights,
     solver: Solver,
+    start: &[f32],
 ) -> Result<(Vec<f32>, usize), EraseError> {
     let mut unknown = vec![u32::MAX; grid.len()];
     let mut n = 0u32;
@@ -413,7 +420,15 @@ fn solve_band(
         sys.solve()?
     } else {
         let coarse = coarse_space(grid, &unknown, dist);
-        sys.solve_iterative(&coarse)?.0
+        let mut x0 = vec![0.0; unknowns * channels];
+        for (t, &u) in unknown.iter().enumerate() {
+            if u != u32::MAX {
+                for c in 0..channels {
+                    x0[u as usize * channels + c] = f64::from(start[t * channels + c]);
+                }
+            }
+        }
+        sys.solve_iterative(&coarse, &x0)?.0
     };
     let mut out = input.to_vec();
     for (t, &u) in unknown.iter().enumerate() {

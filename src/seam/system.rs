@@ -107,13 +107,17 @@ impl<'a> SpdSystem<'a> {
         }
     }
 
-    /// Solves by two-level preconditioned CG (see [`super::twolevel`]); returns
-    /// `x` interleaved by channel and the iteration count.
-    pub fn solve_iterative(self, coarse: &Prolongation) -> Result<(Vec<f64>, usize), SolveError> {
+    /// Solves by two-level preconditioned CG (see [`super::twolevel`]) from
+    /// the guess `x0`; returns `x` interleaved by channel and the iteration count.
+    pub fn solve_iterative(
+        self,
+        coarse: &Prolongation,
+        x0: &[f64],
+    ) -> Result<(Vec<f64>, usize), SolveError> {
         let t = std::time::Instant::now();
         let a = Symmetric::from_lower(self.n, &self.lower)?;
         drop(self.lower);
-        let r = twolevel::solve(&a, &self.rhs, self.channels, coarse)?;
+        let r = twolevel::solve(&a, &self.rhs, self.channels, coarse, x0)?;
         tracing::debug!(
             unknowns = self.n,
             coarse = coarse.coarse,

@@ -279,18 +279,23 @@ fn dots(u: &[f64], v: &[f64], ch: usize) -> Vec<f64> {
     d
 }
 
-/// Solves A x = b (`ch` interleaved channels) by preconditioned CG starting from 0.
-/// Returns the solution and the iteration count.
+/// Solves A x = b (`ch` interleaved channels) by preconditioned CG starting
+/// from `x0`. Returns the solution and the iteration count.
 pub fn solve(
     a: &Symmetric,
     b: &[f64],
     ch: usize,
     prolongation: &Prolongation,
+    x0: &[f64],
 ) -> Result<(Vec<f64>, usize), SolveError> {
     let n = a.n;
     let m = Preconditioner::new(a, prolongation)?;
-    let mut x = vec![0.0; n * ch];
-    let mut r = b.to_vec();
+    let mut x = x0.to_vec();
+    let mut r = vec![0.0; n * ch];
+    a.apply(&x, &mut r, ch);
+    for (ri, bi) in r.iter_mut().zip(b) {
+        *ri = bi - *ri;
+    }
     let mut z = vec![0.0; n * ch];
     let mut scratch = vec![0.0; n * ch];
     let mut q = vec![0.0; n * ch];
