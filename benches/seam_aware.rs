@@ -10,12 +10,12 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
+use seamstress::bc1::seam_aware::{optimise, Problem, SeamAwareOptions};
 use seamstress::bc1::{self, Level};
 use seamstress::model::{self, find_seams, LoadOptions};
 use seamstress::seam::erase::{erase, EraseOptions, Mode};
 use seamstress::seam::metric::seam_points_texel_length;
 use seamstress::seam::{colour_channels, psnr, SeamMetric, TexelClasses, TexelGrid};
-use seamstress::seam_aware::{optimise, Problem, SeamAwareOptions};
 
 const MODELS: [&str; 4] = [
     "cube/cube_gradient_1024.glb",

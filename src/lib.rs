@@ -1,14 +1,13 @@
 //! Seamstress: seam erasure and seam-aware BC1 compression for glTF textures.
 //!
 //! Data flows one way: [`model`] (load glTF, bind textures, weld, find seams)
-//! → [`seam`] (exact metric, erasure) → [`bc1`] (encode, write DDS) →
-//! [`pipeline`] (one job: model in, files and report out).
+//! → [`seam`] (exact metric, erasure) → [`bc1`] (encode, seam-aware encode,
+//! write DDS) → [`pipeline`] (one job: model in, files and report out);
+//! [`service`] runs the pipeline behind HTTP.
 
 pub mod bc1;
 pub mod mips;
 pub mod model;
 pub mod pipeline;
 pub mod seam;
-#[path = "bc1/seam_aware.rs"]
-pub mod seam_aware;
 pub mod service;

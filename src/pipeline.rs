@@ -11,6 +11,7 @@ use std::time::Instant;
 use serde::Serialize;
 
 use crate::bc1::dds::{write_dds, DdsHeaderKind, MipLevel};
+use crate::bc1::seam_aware::{optimise, Problem, SeamAwareOptions};
 use crate::bc1::{self, Block, Level};
 use crate::mips;
 use crate::model::{find_seams, Model, SeamSet, Skipped, Texture, TextureBinding};
@@ -19,7 +20,6 @@ use crate::seam::masking::{mask, MaskingOptions};
 use crate::seam::metric::seam_points_texel_length;
 use crate::seam::system::SolveError;
 use crate::seam::{colour_channels, psnr, SeamMetric, TexelClasses, TexelGrid};
-use crate::seam_aware::{optimise, Problem, SeamAwareOptions};
 
 /// How seams are removed.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default, clap::ValueEnum, Serialize)]
@@ -43,7 +43,7 @@ pub enum Format {
     Png,
 }
 
-pub use crate::seam_aware::DEFAULT_ALPHA as DEFAULT_SEAM_WEIGHT;
+pub use crate::bc1::seam_aware::DEFAULT_ALPHA as DEFAULT_SEAM_WEIGHT;
 
 #[derive(Clone, Copy, Debug)]
 pub struct ProcessOptions {

@@ -13,6 +13,7 @@ mod block;
 pub mod dds;
 mod encode;
 mod fast;
+pub mod seam_aware;
 
 use std::fmt;
 use std::str::FromStr;
