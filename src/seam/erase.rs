@@ -13,22 +13,22 @@
 //! the screened Poisson equation (c − Δ)δ = 0 there. Along a line, its decaying
 //! solution shrinks by r = 1 + c/2 − sqrt(c + c²/4) per texel, and by the
 //! maximum principle no solution in 2D decays slower than the 1D one from the
-//! same boundary values. So we solve only for texels within `R` texels
-//! (Chebyshev distance) of a seam texel, holding the rest at p0, and check the
-//! answer: if the largest |δ| on the band's outer ring, times r, exceeds the
-//! tolerance (1e-3 levels by default), the true solution may differ outside
-//! the band by that much, so R grows by the number of decay steps still needed
-//! and the system is solved again.
+//! same boundary values. Holding the texels beyond distance R at p0 truncates
+//! the decaying a·r^d to a·(r^d − r^(2R+2−d)): the band's edge texels keep only
+//! (1 − r²) of their true change, and the first texels outside miss
+//! a·r^(R+1) = edge·r/(1 − r²), about ten times the edge change in local mode.
+//! So we solve for the texels within R (Chebyshev distance) of a seam texel,
+//! then, wherever an edge texel's change implies a miss above the tolerance
+//! (1e-3 levels by default), widen the band around that texel by the decay
+//! steps still needed, and solve again from the previous solution.
 
-use std::collections::VecDeque;
-
+use super::assemble::{assemble, Weights};
 use super::grid::TexelGrid;
+use super::multigrid::{self, Hierarchy, Node};
 use super::quadrature::{seam_derivative_points, seam_difference_points, QuadPoint, Segment};
-use super::system::{SolveError, SpdSystem};
+use super::system::{Cholesky, SolveError};
 use super::texels::TexelClasses;
-use super::twolevel::Prolongation;
 use crate::model::SeamSet;
-use faer::sparse::Triplet;
 
 /// How far the erasure may spread (SPEC §4): `local` keeps changes near the
 /// seams; `global` lets a colour offset between the two sides spread out.
@@ -111,20 +111,37 @@ pub enum EraseError {
 /// The quadratic energy's pieces that do not depend on the band.
 struct SeamTerms {
     points: Vec<QuadPoint>,
+    /// The input's largest jump across a seam (any channel) at the texels of
+    /// each seam cell: what the erasure must remove there.
+    jumps: Vec<(u32, f64)>,
 }
 
 impl SeamTerms {
-    fn new(grid: &TexelGrid, seams: &SeamSet, w: &EraseWeights) -> Self {
+    fn new(
+        grid: &TexelGrid,
+        seams: &SeamSet,
+        w: &EraseWeights,
+        input: &[f32],
+        channels: usize,
+    ) -> Self {
         let total = seams.total_length();
         let mut points = Vec::new();
+        let mut jumps = Vec::new();
         if total <= 0.0 {
-            return SeamTerms { points };
+            return SeamTerms { points, jumps };
         }
         for s in &seams.seams {
             let e1 = Segment::from_uv(grid, s.a);
             let e2 = Segment::from_uv(grid, s.b);
             let scale = s.length / total;
+            let first = points.len();
             seam_difference_points(grid, e1, e2, w.seam * scale, &mut points);
+            for q in &points[first..] {
+                let jump = (0..channels)
+                    .map(|c| q.apply(input, channels, c).abs())
+                    .fold(0.0, f64::max);
+                jumps.extend(q.taps.iter().map(|&(t, _)| (t, jump)));
+            }
             let n1 = e1.inward_normal(grid.to_texel(s.a_opposite));
             let n2 = e2.inward_normal(grid.to_texel(s.b_opposite));
             // A half-edge collapsed to a point has no normal; its C1 term is undefined.
@@ -132,7 +149,7 @@ impl SeamTerms {
                 seam_derivative_points(grid, e1, e2, n1, n2, w.c1 * scale, &mut points);
             }
         }
-        SeamTerms { points }
+        SeamTerms { points, jumps }
     }
 }
 
@@ -146,7 +163,7 @@ pub fn erase(
     opts: &EraseOptions,
 ) -> Result<(Vec<f32>, EraseStats), EraseError> {
     let w = &opts.weights;
-    let terms = SeamTerms::new(grid, seams, w);
+    let terms = SeamTerms::new(grid, seams, w, input, channels);
     if terms.points.is_empty() {
         return Ok((input.to_vec(), EraseStats::default()));
     }
@@ -190,38 +207,165 @@ pub fn erase(
     let ratio = decay_per_texel(change / w.grad);
     let decay_len = -1.0 / ratio.ln();
     let tol = opts.band_tolerance_levels / 255.0;
-    let mut radius = ((4.0 * decay_len).ceil() as usize).max(4).min(max_radius);
+    // The first band: every texel within reach of a seam jump, i.e. as far
+    // as the decay needs to bring that jump below the tolerance, and at least
+    // `MIN_BAND` decay lengths (changes driven by the C1 term or by distant
+    // jumps are caught by the check after the solve).
+    let mut reach = vec![-1i32; grid.len()];
+    for &(t, jump) in &terms.jumps {
+        if 0.5 * jump > tol {
+            // Each side of the seam takes about half the jump.
+            let need = ((0.5 * jump / tol).ln() * decay_len).ceil() as i32 + 1;
+            reach[t as usize] = reach[t as usize].max(need);
+        }
+    }
+    spread_down(&mut reach, grid.width, grid.height);
+    let base = (MIN_BAND * decay_len).ceil() as u32;
+    let mut band: Vec<bool> = dist
+        .iter()
+        .zip(&reach)
+        .zip(&movable)
+        .map(|((&d, &r), &m)| m && (d <= base || r >= 0))
+        .collect();
     let mut solves = 0;
     // A wider band starts from the narrower band's solution, which is already
     // right near the seams.
     let mut last: Option<Vec<f32>> = None;
     loop {
-        let band: Vec<bool> = dist
-            .iter()
-            .zip(&movable)
-            .map(|(&d, &m)| m && (d as usize) <= radius)
-            .collect();
         let (out, unknowns) = solve(&band, last.as_deref().unwrap_or(input))?;
         solves += 1;
-        let edge = max_change_at(&out, input, channels, &dist, &band, radius);
-        let leak = edge * ratio;
-        tracing::debug!(
-            radius,
-            unknowns,
-            edge_change = edge * 255.0,
-            "erase band solved"
-        );
-        if leak <= tol || radius >= max_radius || solves >= 4 {
+        let growth = grow_band(grid, &band, &movable, &out, input, channels, ratio, tol);
+        tracing::debug!(unknowns, leaks = growth.leaks, "erase band solved");
+        if growth.leaks == 0 || solves >= 4 {
+            let reach = band
+                .iter()
+                .zip(&dist)
+                .filter(|(b, _)| **b)
+                .map(|(_, &d)| d as usize)
+                .max();
             let stats = EraseStats {
                 unknowns,
-                band_radius: Some(radius),
+                band_radius: reach,
                 solves,
             };
             return Ok((out, stats));
         }
-        let more = ((leak / tol).ln() * decay_len).ceil() as usize + 1;
-        radius = (radius + more).min(max_radius);
+        band = growth.band;
         last = Some(out);
+    }
+}
+
+/// The narrowest band, in decay lengths.
+const MIN_BAND: f64 = 2.0;
+
+/// How much a widening may raise the change at the band's edge (see `grow_band`).
+const GROWTH_MARGIN: f64 = 10.0;
+
+struct Growth {
+    band: Vec<bool>,
+    /// Edge texels whose change may leak more than the tolerance outside.
+    leaks: usize,
+}
+
+/// Widens the band around each edge texel whose implied miss outside (see the
+/// module docs) exceeds `tol`: by as many texels as the decay needs to bring
+/// it below, and only there.
+#[allow(clippy::too_many_arguments)]
+fn grow_band(
+    grid: &TexelGrid,
+    band: &[bool],
+    movable: &[bool],
+    out: &[f32],
+    input: &[f32],
+    ch: usize,
+    ratio: f64,
+    tol: f64,
+) -> Growth {
+    let (w, h) = (grid.width, grid.height);
+    let decay_len = -1.0 / ratio.ln();
+    // reach[t] ≥ 0: texel t lies within the needed widening of some leak.
+    let mut reach = vec![-1i32; w * h];
+    let mut leaks = 0;
+    for (t, _) in band.iter().enumerate().filter(|(_, b)| **b) {
+        let (x, y) = (t % w, t / w);
+        let outside = [
+            (x > 0).then(|| t - 1),
+            (x + 1 < w).then(|| t + 1),
+            (y > 0).then(|| t - w),
+            (y + 1 < h).then(|| t + w),
+        ]
+        .into_iter()
+        .flatten()
+        .any(|s| movable[s] && !band[s]);
+        if !outside {
+            continue;
+        }
+        let change = (0..ch)
+            .map(|c| f64::from((out[t * ch + c] - input[t * ch + c]).abs()))
+            .fold(0.0, f64::max);
+        let leak = change * ratio / (1.0 - ratio * ratio);
+        if leak > tol {
+            leaks += 1;
+        }
+        // Widening next to a leak raises its neighbours' change too: widen
+        // those close to the tolerance as well, with a margin.
+        if leak * GROWTH_MARGIN > tol {
+            reach[t] = ((leak * GROWTH_MARGIN / tol).ln() * decay_len).ceil() as i32 + 1;
+        }
+    }
+    if leaks > 0 {
+        spread_down(&mut reach, w, h);
+    }
+    let band = band
+        .iter()
+        .zip(&reach)
+        .zip(movable)
+        .map(|((&b, &r), &m)| b || (m && r >= 0))
+        .collect();
+    Growth { band, leaks }
+}
+
+/// reach[i] = max over j of reach[j] − chebyshev(i, j): two raster passes.
+fn spread_down(reach: &mut [i32], w: usize, h: usize) {
+    for y in 0..h {
+        for x in 0..w {
+            let i = y * w + x;
+            let mut m = reach[i];
+            if x > 0 {
+                m = m.max(reach[i - 1] - 1);
+            }
+            if y > 0 {
+                let up = i - w;
+                m = m.max(reach[up] - 1);
+                if x > 0 {
+                    m = m.max(reach[up - 1] - 1);
+                }
+                if x + 1 < w {
+                    m = m.max(reach[up + 1] - 1);
+                }
+            }
+            reach[i] = m;
+        }
+    }
+    for y in (0..h).rev() {
+        for x in (0..w).rev() {
+            let i = y * w + x;
+            let mut m = reach[i];
+            if x + 1 < w {
+                m = m.max(reach[i + 1] - 1);
+            }
+            if y + 1 < h {
+                let down = i + w;
+                m = m.max(reach[down] - 1);
+                if x + 1 < w {
+                    m = m.max(reach[down + 1] - 1);
+                }
+                if x > 0 {
+                    m = m.max(reach[down - 1] - 1);
+                }
+            }
+            reach[i] = m;
+        }
     }
 }
 
@@ -230,115 +374,60 @@ fn decay_per_texel(c: f64) -> f64 {
     1.0 + 0.5 * c - (c + 0.25 * c * c).sqrt()
 }
 
-/// Chebyshev distance (in texels, capped at `cap`) to the nearest `source` texel.
+/// Chebyshev distance (in texels, capped at `cap`) to the nearest `source`
+/// texel: two raster passes of the 3×3 chamfer, exact for this metric.
 fn distance_from(grid: &TexelGrid, source: &[bool], cap: usize) -> Vec<u32> {
     let (w, h) = (grid.width, grid.height);
-    let mut dist = vec![u32::MAX; w * h];
-    let mut queue = VecDeque::new();
-    for (i, _) in source.iter().enumerate().filter(|(_, s)| **s) {
-        dist[i] = 0;
-        queue.push_back(i);
-    }
-    while let Some(i) = queue.pop_front() {
-        let d = dist[i];
-        if d as usize >= cap {
-            continue;
-        }
-        let (x, y) = ((i % w) as i64, (i / w) as i64);
-        for dy in -1..=1 {
-            for dx in -1..=1 {
-                let (nx, ny) = (x + dx, y + dy);
-                if nx < 0 || ny < 0 || nx >= w as i64 || ny >= h as i64 {
-                    continue;
+    let far = cap.min(u32::MAX as usize - 1) as u32;
+    let mut d: Vec<u32> = source.iter().map(|&s| if s { 0 } else { far }).collect();
+    for y in 0..h {
+        for x in 0..w {
+            let i = y * w + x;
+            let mut m = d[i];
+            if x > 0 {
+                m = m.min(d[i - 1] + 1);
+            }
+            if y > 0 {
+                let up = i - w;
+                m = m.min(d[up] + 1);
+                if x > 0 {
+                    m = m.min(d[up - 1] + 1);
                 }
-                let j = ny as usize * w + nx as usize;
-                if dist[j] == u32::MAX {
-                    dist[j] = d + 1;
-                    queue.push_back(j);
+                if x + 1 < w {
+                    m = m.min(d[up + 1] + 1);
                 }
             }
+            d[i] = m.min(far);
         }
     }
-    dist
-}
-
-fn max_change_at(
-    out: &[f32],
-    input: &[f32],
-    channels: usize,
-    dist: &[u32],
-    band: &[bool],
-    radius: usize,
-) -> f64 {
-    let mut m = 0.0f64;
-    for (t, _) in band.iter().enumerate().filter(|(_, b)| **b) {
-        if dist[t] as usize == radius {
-            for c in 0..channels {
-                let k = t * channels + c;
-                m = m.max(f64::from((out[k] - input[k]).abs()));
+    for y in (0..h).rev() {
+        for x in (0..w).rev() {
+            let i = y * w + x;
+            let mut m = d[i];
+            if x + 1 < w {
+                m = m.min(d[i + 1] + 1);
             }
-        }
-    }
-    m
-}
-
-/// Above this many unknowns, two-level CG beats a direct factorisation.
-pub const DIRECT_LIMIT: usize = 1_500_000;
-/// Texels this close to a seam texel are their own coarse unknowns.
-const COARSE_EXACT_RADIUS: u32 = 3;
-/// Lattice spacing of the coarse space elsewhere.
-const COARSE_SPACING: usize = 4;
-
-/// The coarse space of [`super::twolevel`]: identity near the seams, bilinear
-/// hat functions on a `COARSE_SPACING` lattice elsewhere.
-fn coarse_space(grid: &TexelGrid, unknown: &[u32], dist: &[u32]) -> Prolongation {
-    let h = COARSE_SPACING;
-    let lw = grid.width / h + 2;
-    let mut node = vec![u32::MAX; lw * (grid.height / h + 2)];
-    let mut count = 0u32;
-    let mut entries = Vec::new();
-    let mut lattice = Vec::new();
-    let mut id = |slot: usize, count: &mut u32, lattice: &mut Vec<bool>| {
-        if node[slot] == u32::MAX {
-            node[slot] = *count;
-            *count += 1;
-            lattice.push(true);
-        }
-        node[slot]
-    };
-    for (t, &u) in unknown.iter().enumerate() {
-        if u == u32::MAX {
-            continue;
-        }
-        if dist[t] <= COARSE_EXACT_RADIUS {
-            let c = count;
-            count += 1;
-            lattice.push(false);
-            entries.push(Triplet::new(u, c, 1.0));
-            continue;
-        }
-        let (x, y) = (t % grid.width, t / grid.width);
-        let (cx, cy) = (x / h, y / h);
-        let fx = (x - cx * h) as f64 / h as f64;
-        let fy = (y - cy * h) as f64 / h as f64;
-        for (dx, dy, w) in [
-            (0, 0, (1.0 - fx) * (1.0 - fy)),
-            (1, 0, fx * (1.0 - fy)),
-            (0, 1, (1.0 - fx) * fy),
-            (1, 1, fx * fy),
-        ] {
-            if w > 0.0 {
-                let c = id((cy + dy) * lw + cx + dx, &mut count, &mut lattice);
-                entries.push(Triplet::new(u, c, w));
+            if y + 1 < h {
+                let down = i + w;
+                m = m.min(d[down] + 1);
+                if x + 1 < w {
+                    m = m.min(d[down + 1] + 1);
+                }
+                if x > 0 {
+                    m = m.min(d[down - 1] + 1);
+                }
             }
+            d[i] = m.min(far);
         }
     }
-    Prolongation {
-        coarse: count as usize,
-        lattice,
-        entries,
-    }
+    d
 }
+
+/// Above this many unknowns, multigrid CG beats a direct factorisation.
+pub const DIRECT_LIMIT: usize = 100_000;
+/// Texels this close to a seam texel stay unknowns of their own on every
+/// multigrid level (see [`super::multigrid`]).
+const EXACT_RADIUS: u32 = 3;
 
 /// Assembles and solves the energy with the texels in `band` as unknowns.
 #[allow(clippy::too_many_arguments)]
@@ -361,84 +450,55 @@ fn solve_band(
         unknown[t] = n;
         n += 1;
     }
-    let mut sys = SpdSystem::new(&unknown, n as usize, channels);
-    let zero = [0.0f64; 4];
-    let p0 = |t: usize| -> [f64; 4] {
-        let mut v = [0.0; 4];
-        for c in 0..channels {
-            v[c] = f64::from(input[t * channels + c]);
-        }
-        v
+    let n = n as usize;
+    let weights = Weights {
+        change,
+        free_anchor: change * 1e-6,
+        grad: w.grad,
     };
-
-    for q in &terms.points {
-        sys.add_square(q.weight, &q.taps, &zero, input);
-    }
-    // Free texels are outside T; a vanishing anchor keeps a free cluster with
-    // no path to an inside texel from leaving the system singular.
-    let free_anchor = change * 1e-6;
-    let (wd, ht) = (grid.width, grid.height);
-    for (t, _) in band.iter().enumerate().filter(|(_, b)| **b) {
-        let weight = if classes.free[t] { free_anchor } else { change };
-        sys.add_anchor(weight, t as u32, &p0(t));
-        let (x, y) = (t % wd, t / wd);
-        let movable = |s: usize| classes.inside[s] || classes.free[s];
-        // Each pair once: from the unknown with the smaller index, or from the
-        // only unknown when its neighbour is held fixed.
-        for (nx, ny) in [
-            (x.wrapping_sub(1), y),
-            (x + 1, y),
-            (x, y.wrapping_sub(1)),
-            (x, y + 1),
-        ] {
-            if nx >= wd || ny >= ht {
-                continue;
-            }
-            let s = ny * wd + nx;
-            if !movable(s) || (band[s] && s < t) {
-                continue;
-            }
-            let both_inside = classes.inside[t] && classes.inside[s];
-            let (a, b) = (p0(t), p0(s));
-            let mut target = [0.0; 4];
-            if both_inside {
-                for c in 0..channels {
-                    target[c] = a[c] - b[c];
-                }
-            }
-            sys.add_square(w.grad, &[(t as u32, 1.0), (s as u32, -1.0)], &target, input);
-        }
-    }
-
-    let unknowns = sys.unknowns();
+    let (a, b) = assemble(
+        grid,
+        input,
+        channels,
+        classes,
+        &terms.points,
+        &unknown,
+        n,
+        &weights,
+    )?;
     let direct = match solver {
-        Solver::Auto => unknowns <= DIRECT_LIMIT,
+        Solver::Auto => n <= DIRECT_LIMIT,
         Solver::Direct => true,
         Solver::Iterative => false,
     };
+    let ch = channels;
     let x = if direct {
-        sys.solve()?
+        Cholesky::new(&a.to_faer())?.solve_interleaved(&b, ch)
     } else {
-        let coarse = coarse_space(grid, &unknown, dist);
-        let mut x0 = vec![0.0; unknowns * channels];
-        for (t, &u) in unknown.iter().enumerate() {
-            if u != u32::MAX {
-                for c in 0..channels {
-                    x0[u as usize * channels + c] = f64::from(start[t * channels + c]);
-                }
-            }
+        let mut nodes = Vec::with_capacity(n);
+        let mut x0 = Vec::with_capacity(n * ch);
+        for (t, _) in unknown.iter().enumerate().filter(|(_, u)| **u != u32::MAX) {
+            nodes.push(if dist[t] <= EXACT_RADIUS {
+                Node::Exact
+            } else {
+                Node::Lattice((t % grid.width) as u32, (t / grid.width) as u32)
+            });
+            x0.extend(start[t * ch..(t + 1) * ch].iter().map(|&v| f64::from(v)));
         }
-        sys.solve_iterative(&coarse, &x0)?.0
+        let m = Hierarchy::new(a, nodes)?;
+        let (x, iterations) = multigrid::solve(&m, &b, ch, &x0)?;
+        tracing::debug!(unknowns = n, iterations, "multigrid solve");
+        x
     };
     let mut out = input.to_vec();
     for (t, &u) in unknown.iter().enumerate() {
         if u != u32::MAX {
-            for c in 0..channels {
-                out[t * channels + c] = x[u as usize * channels + c] as f32;
+            for c in 0..ch {
+                out[t * ch + c] = x[u as usize * ch + c] as f32;
             }
         }
     }
-    Ok((out, unknowns))
+    Ok((out, n))
 }
 
 #[cfg(test)]

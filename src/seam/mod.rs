@@ -1,14 +1,16 @@
 //! The seam engine: exact seam metric, seam erasure, and the sampled
 //! masking baseline, all on one texel grid.
 
+pub mod assemble;
 pub mod erase;
 pub mod grid;
 pub mod masking;
 pub mod metric;
+pub mod multigrid;
 pub mod quadrature;
+pub mod sparse;
 pub mod system;
 pub mod texels;
-pub mod twolevel;
 
 pub use grid::TexelGrid;
 pub use metric::{colour_channels, psnr, SeamMetric};

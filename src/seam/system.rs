@@ -11,7 +11,6 @@ use faer::sparse::{SparseColMat, Triplet};
 use faer::{Conj, Mat, MatMut, Par, Side};
 
 use super::grid::Tap;
-use super::twolevel::{self, Prolongation, Symmetric};
 
 #[derive(Debug, thiserror::Error)]
 pub enum SolveError {
@@ -107,27 +106,6 @@ impl<'a> SpdSystem<'a> {
         }
     }
 
-    /// Solves by two-level preconditioned CG (see [`super::twolevel`]) from
-    /// the guess `x0`; returns `x` interleaved by channel and the iteration count.
-    pub fn solve_iterative(
-        self,
-        coarse: &Prolongation,
-        x0: &[f64],
-    ) -> Result<(Vec<f64>, usize), SolveError> {
-        let t = std::time::Instant::now();
-        let a = Symmetric::from_lower(self.n, &self.lower)?;
-        drop(self.lower);
-        let r = twolevel::solve(&a, &self.rhs, self.channels, coarse, x0)?;
-        tracing::debug!(
-            unknowns = self.n,
-            coarse = coarse.coarse,
-            iterations = r.1,
-            ms = t.elapsed().as_millis() as u64,
-            "iterative solve"
-        );
-        Ok(r)
-    }
-
     /// Factors once and solves for all channels; returns `x` interleaved by channel.
     pub fn solve(self) -> Result<Vec<f64>, SolveError> {
         let (n, ch) = (self.n, self.channels);
@@ -141,8 +119,7 @@ impl<'a> SpdSystem<'a> {
         drop(self.lower);
         let llt = Cholesky::new(&a)?;
         let factored = t.elapsed();
-        let mut b = Mat::<f64>::from_fn(n, ch, |i, c| self.rhs[i * ch + c]);
-        llt.solve_in_place(b.as_mut());
+        let x = llt.solve_interleaved(&self.rhs, ch);
         tracing::debug!(
             unknowns = n,
             nonzeros = a.compute_nnz(),
@@ -152,12 +129,6 @@ impl<'a> SpdSystem<'a> {
             solve_ms = (t.elapsed() - factored).as_millis() as u64,
             "sparse solve"
         );
-        let mut x = vec![0.0; n * ch];
-        for i in 0..n {
-            for c in 0..ch {
-                x[i * ch + c] = b[(i, c)];
-            }
-        }
         Ok(x)
     }
 }
@@ -198,6 +169,20 @@ impl Cholesky {
             )
             .map_err(|e| SolveError::NotPositiveDefinite(format!("{e:?}")))?;
         Ok(Cholesky { symbolic, factor })
+    }
+
+    /// A⁻¹·b for `ch` right-hand sides interleaved in `b`, interleaved alike.
+    pub fn solve_interleaved(&self, b: &[f64], ch: usize) -> Vec<f64> {
+        let n = b.len() / ch.max(1);
+        let mut m = Mat::<f64>::from_fn(n, ch, |i, c| b[i * ch + c]);
+        self.solve_in_place(m.as_mut());
+        let mut x = vec![0.0; n * ch];
+        for i in 0..n {
+            for c in 0..ch {
+                x[i * ch + c] = m[(i, c)];
+            }
+        }
+        x
     }
 
     /// Overwrites `rhs` (one column per channel) with A⁻¹·rhs.

@@ -1,0 +1,217 @@
+//! The erasure energy (SPEC §4) as a sparse system over the band's unknowns.
+//!
+//! Rows come out in texel order, already sorted, so a 2048² band of two
+//! million unknowns assembles in one pass with no global sort: each row is
+//! its lattice stencil (change anchor and gradient links, at most five
+//! entries) merged with its seam entries. Only the seam terms go through a
+//! sort, after the Gauss points that share the same eight texels (all the
+//! points of one cell pair, for both the difference and the C1 term) have
+//! been summed into one dense 8×8 block.
+
+use std::collections::HashMap;
+
+use super::grid::TexelGrid;
+use super::quadrature::QuadPoint;
+use super::sparse::SymCsr;
+use super::system::SolveError;
+use super::texels::TexelClasses;
+
+/// What the energy weighs, per term.
+pub struct Weights {
+    /// E_change per texel: w_change / |T|.
+    pub change: f64,
+    /// Free texels are outside T; a vanishing anchor keeps a free cluster with
+    /// no path to an inside texel from leaving the system singular.
+    pub free_anchor: f64,
+    pub grad: f64,
+}
+
+/// A seam block: up to eight unknowns and their dense coupling.
+struct Block {
+    unknowns: [u32; 8],
+    len: usize,
+    a: [[f64; 8]; 8],
+}
+
+/// Assembles `A x = b` for the texels with `unknown[t] != u32::MAX`
+/// (numbered in texel order); the others are held at `input`.
+/// `b` is interleaved by channel.
+#[allow(clippy::too_many_arguments)]
+pub fn assemble(
+    grid: &TexelGrid,
+    input: &[f32],
+    channels: usize,
+    classes: &TexelClasses,
+    points: &[QuadPoint],
+    unknown: &[u32],
+    n: usize,
+    w: &Weights,
+) -> Result<(SymCsr, Vec<f64>), SolveError> {
+    let ch = channels;
+    let mut rhs = vec![0.0f64; n * ch];
+    let seam_rows = seam_entries(points, unknown, input, ch, &mut rhs);
+
+    let (wd, ht) = (grid.width, grid.height);
+    let movable = |s: usize| classes.inside[s] || classes.free[s];
+    let mut ptr = Vec::with_capacity(n + 1);
+    let mut col = Vec::with_capacity(n * 5 + seam_rows.len());
+    let mut val = Vec::with_capacity(n * 5 + seam_rows.len());
+    ptr.push(0);
+    let mut seam = seam_rows.iter().peekable();
+    let mut lattice: Vec<(u32, f64)> = Vec::with_capacity(5);
+    for (t, &u) in unknown.iter().enumerate() {
+        if u == u32::MAX {
+            continue;
+        }
+        let (x, y) = (t % wd, t / wd);
+        let anchor = if classes.free[t] {
+            w.free_anchor
+        } else {
+            w.change
+        };
+        let mut diag = anchor;
+        for c in 0..ch {
+            rhs[u as usize * ch + c] += anchor * f64::from(input[t * ch + c]);
+        }
+        lattice.clear();
+        // Neighbours in increasing texel order (up, left, right, down), so
+        // their unknowns come out sorted; the diagonal goes between left and right.
+        let neighbours = [
+            (y > 0).then(|| t - wd),
+            (x > 0).then(|| t - 1),
+            (x + 1 < wd).then(|| t + 1),
+            (y + 1 < ht).then(|| t + wd),
+        ];
+        for (k, s) in neighbours.into_iter().enumerate() {
+            if k == 2 {
+                lattice.push((u, 0.0));
+            }
+            let Some(s) = s.filter(|&s| movable(s)) else {
+                continue;
+            };
+            // w_grad·((p_t − p_s) − target)², target = p0_t − p0_s between inside texels.
+            diag += w.grad;
+            let both_inside = classes.inside[t] && classes.inside[s];
+            for c in 0..ch {
+                let (a, b) = (f64::from(input[t * ch + c]), f64::from(input[s * ch + c]));
+                let target = if both_inside { a - b } else { 0.0 };
+                let held = if unknown[s] == u32::MAX { b } else { 0.0 };
+                rhs[u as usize * ch + c] += w.grad * (target + held);
+            }
+            if unknown[s] != u32::MAX {
+                lattice.push((unknown[s], -w.grad));
+            }
+        }
+        for e in lattice.iter_mut() {
+            if e.0 == u {
+                e.1 = diag;
+            }
+        }
+        // Merge with this row's seam entries (sorted by column).
+        let mut li = lattice.iter().peekable();
+        loop {
+            let next_seam = seam.peek().filter(|e| e.0 == u).map(|e| (e.1, e.2));
+            match (li.peek(), next_seam) {
+                (None, None) => break,
+                (Some(&&(lc, lv)), Some((sc, sv))) if lc == sc => {
+                    col.push(lc);
+                    val.push(lv + sv);
+                    li.next();
+                    seam.next();
+                }
+                (Some(&&(lc, lv)), Some((sc, _))) if lc < sc => {
+                    col.push(lc);
+                    val.push(lv);
+                    li.next();
+                }
+                (Some(&&(lc, lv)), None) => {
+                    col.push(lc);
+                    val.push(lv);
+                    li.next();
+                }
+                (_, Some((sc, sv))) => {
+                    col.push(sc);
+                    val.push(sv);
+                    seam.next();
+                }
+            }
+        }
+        ptr.push(col.len());
+    }
+    Ok((SymCsr::from_parts(ptr, col, val)?, rhs))
+}
+
+/// The seam and C1 terms as sorted (row, col, value) entries of both
+/// triangles; their right-hand side (from texels held fixed) goes into `rhs`.
+fn seam_entries(
+    points: &[QuadPoint],
+    unknown: &[u32],
+    input: &[f32],
+    ch: usize,
+    rhs: &mut [f64],
+) -> Vec<(u32, u32, f64)> {
+    let mut blocks: Vec<Block> = Vec::new();
+    let mut index: HashMap<[u32; 8], usize> = HashMap::new();
+    for q in points {
+        let mut free = [(u32::MAX, 0.0f64); 8];
+        let mut nfree = 0;
+        let mut offset = [0.0f64; 4];
+        for &(t, wt) in &q.taps {
+            if wt == 0.0 {
+                continue;
+            }
+            let u = unknown[t as usize];
+            if u == u32::MAX {
+                for (c, o) in offset[..ch].iter_mut().enumerate() {
+                    *o -= wt * f64::from(input[t as usize * ch + c]);
+                }
+            } else if let Some(slot) = free[..nfree].iter_mut().find(|s| s.0 == u) {
+                slot.1 += wt;
+            } else {
+                free[nfree] = (u, wt);
+                nfree += 1;
+            }
+        }
+        if nfree == 0 {
+            continue;
+        }
+        for &(u, wu) in &free[..nfree] {
+            for c in 0..ch {
+                rhs[u as usize * ch + c] += q.weight * wu * offset[c];
+            }
+        }
+        let key = free.map(|f| f.0);
+        let b = *index.entry(key).or_insert_with(|| {
+            blocks.push(Block {
+                unknowns: key,
+                len: nfree,
+                a: [[0.0; 8]; 8],
+            });
+            blocks.len() - 1
+        });
+        let a = &mut blocks[b].a;
+        for k in 0..nfree {
+            for l in 0..nfree {
+                a[k][l] += q.weight * free[k].1 * free[l].1;
+            }
+        }
+    }
+    let mut entries: Vec<(u32, u32, f64)> = Vec::with_capacity(blocks.len() * 64);
+    for b in &blocks {
+        for k in 0..b.len {
+            for l in 0..b.len {
+                entries.push((b.unknowns[k], b.unknowns[l], b.a[k][l]));
+            }
+        }
+    }
+    // Stable, so equal entries are summed in the order the points came.
+    entries.sort_by_key(|e| (e.0, e.1));
+    let mut merged: Vec<(u32, u32, f64)> = Vec::with_capacity(entries.len() / 2);
+    for e in entries {
+        match merged.last_mut() {
+            Some(m) if m.0 == e.0 && m.1 == e.1 => m.2 += e.2,
+            _ => merged.push(e),
+        }
+    }
+    merged
+}

@@ -1,0 +1,309 @@
+//! Multigrid-preconditioned conjugate gradients for the erasure system.
+//!
+//! Far from the seams the system is a screened Poisson equation on the texel
+//! lattice, which geometric multigrid solves in a few cycles. Near the seams
+//! it is not: the seam terms (weight 1e10) tie texels on the two sides of a
+//! cut, which lie far apart in the texture, and no lattice interpolation can
+//! follow such a tie (a coarse hat function on one side alone would carry the
+//! full seam penalty). So every level keeps the texels near the seams as
+//! unknowns of their own ("exact" nodes, identity in the prolongation), and
+//! coarsens only the rest, bilinearly by two per level. The coarsest level,
+//! the exact nodes plus a small lattice, is factored directly; it is where the
+//! seam ties are resolved.
+//!
+//! Coarse operators are Galerkin products PᵀAP, so every level describes the
+//! same energy. One V-cycle with a symmetric Gauss–Seidel sweep on each side
+//! is a symmetric preconditioner, and CG turns it into the solution of the
+//! fine system to the tolerance below: the hierarchy decides only how fast.
+
+use rayon::prelude::*;
+
+use super::sparse::{SymCsr, Transfer};
+use super::system::{Cholesky, SolveError};
+
+/// CG stops when no unknown moved by more than this in an iteration (in
+/// [0,1] units: 1e-4 of an 8-bit level). The preconditioned iteration
+/// contracts the error several times per step, so what remains is a fraction
+/// of the last step: well inside the band's 1e-3-level tolerance.
+const STEP_TOLERANCE: f64 = 1e-4 / 255.0;
+/// Or when every channel's residual falls below this fraction of its right-hand side's.
+const RELATIVE_TOLERANCE: f64 = 1e-10;
+const MAX_ITERATIONS: usize = 100;
+/// Stop coarsening when the lattice part of a level has at most this many nodes.
+const COARSEST_LATTICE: usize = 2048;
+/// Relative diagonal shift of the coarsest lattice nodes (see [`Hierarchy::new`]).
+const COARSE_SHIFT: f64 = 1e-6;
+/// Elements per parallel task of the vector kernels.
+const CHUNK: usize = 1 << 15;
+
+/// The place of an unknown in the hierarchy.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Node {
+    /// Kept as an unknown of its own on every level.
+    Exact,
+    /// A lattice node at integer coordinates (in units of the level's spacing).
+    Lattice(u32, u32),
+}
+
+pub struct Hierarchy {
+    /// Operators, finest first; the last one is factored.
+    ops: Vec<SymCsr>,
+    /// `transfers[l]` prolongs from level l+1 to level l.
+    transfers: Vec<Transfer>,
+    coarsest: Cholesky,
+}
+
+impl Hierarchy {
+    /// Builds the levels below `a`, whose unknowns sit at `nodes`.
+    pub fn new(a: SymCsr, nodes: Vec<Node>) -> Result<Self, SolveError> {
+        let t = std::time::Instant::now();
+        let mut ops = vec![a];
+        let mut transfers = Vec::new();
+        let mut nodes = nodes;
+        loop {
+            let lattice = nodes.iter().filter(|n| **n != Node::Exact).count();
+            if lattice <= COARSEST_LATTICE {
+                break;
+            }
+            let (transfer, coarse) = coarsen(&nodes);
+            let ac = ops[ops.len() - 1].galerkin(&transfer)?;
+            transfers.push(transfer);
+            ops.push(ac);
+            nodes = coarse;
+        }
+        let built = t.elapsed();
+        // Hat functions of neighbouring lattice nodes can coincide on a lone
+        // texel at a ragged band edge, which leaves the Galerkin operator
+        // singular. A relative diagonal shift keeps the coarsest factor
+        // positive definite; CG still converges to the unshifted fine solution.
+        let mut last = ops.pop().unwrap_or_default();
+        last.shift_diagonal(COARSE_SHIFT, |i| nodes[i] != Node::Exact);
+        let coarsest = Cholesky::new(&last.to_faer())?;
+        tracing::debug!(
+            levels = ops.len() + 1,
+            fine = ops.first().map_or(last.n, |a| a.n),
+            coarsest = last.n,
+            coarsest_exact = nodes.iter().filter(|n| **n == Node::Exact).count(),
+            galerkin_ms = built.as_millis() as u64,
+            factor_ms = (t.elapsed() - built).as_millis() as u64,
+            "multigrid hierarchy"
+        );
+        ops.push(last);
+        Ok(Hierarchy {
+            ops,
+            transfers,
+            coarsest,
+        })
+    }
+
+    fn fine(&self) -> &SymCsr {
+        &self.ops[0]
+    }
+
+    /// z = M⁻¹ r, one V-cycle from level `l` down.
+    fn vcycle(&self, l: usize, r: &[f64], z: &mut [f64], ws: &mut [Work], ch: usize) {
+        if l + 1 == self.ops.len() {
+            z.copy_from_slice(&self.coarsest.solve_interleaved(r, ch));
+            return;
+        }
+        let Some((w, rest)) = ws.split_first_mut() else {
+            return;
+        };
+        let a = &self.ops[l];
+        let p = &self.transfers[l];
+        z.fill(0.0);
+        a.gauss_seidel(r, z, ch, true);
+        a.residual(r, z, &mut w.residual, ch);
+        p.restrict(&w.residual, &mut w.coarse_rhs, ch);
+        self.vcycle(l + 1, &w.coarse_rhs, &mut w.coarse_z, rest, ch);
+        p.prolong_add(&w.coarse_z, z, ch);
+        a.gauss_seidel(r, z, ch, false);
+    }
+
+    fn workspace(&self, ch: usize) -> Vec<Work> {
+        self.transfers
+            .iter()
+            .map(|p| Work {
+                residual: vec![0.0; p.fine * ch],
+                coarse_rhs: vec![0.0; p.coarse * ch],
+                coarse_z: vec![0.0; p.coarse * ch],
+            })
+            .collect()
+    }
+}
+
+/// Scratch vectors of one level of the V-cycle.
+struct Work {
+    residual: Vec<f64>,
+    coarse_rhs: Vec<f64>,
+    coarse_z: Vec<f64>,
+}
+
+/// One coarsening step: exact nodes map to themselves, lattice nodes
+/// interpolate bilinearly from the lattice of twice their spacing.
+fn coarsen(nodes: &[Node]) -> (Transfer, Vec<Node>) {
+    let (mut w, mut h) = (0u32, 0u32);
+    for n in nodes {
+        if let Node::Lattice(x, y) = *n {
+            w = w.max(x / 2 + 2);
+            h = h.max(y / 2 + 2);
+        }
+    }
+    let mut id = vec![u32::MAX; w as usize * h as usize];
+    let mut coarse = Vec::new();
+    let mut row_ptr = Vec::with_capacity(nodes.len() + 1);
+    let mut row_col = Vec::with_capacity(nodes.len() * 2);
+    let mut row_w = Vec::with_capacity(nodes.len() * 2);
+    row_ptr.push(0);
+    // Along one axis: an even coordinate sits on a coarse node, an odd one halfway.
+    let parents = |x: u32| -> [(u32, f64); 2] {
+        if x.is_multiple_of(2) {
+            [(x / 2, 1.0), (0, 0.0)]
+        } else {
+            [(x / 2, 0.5), (x / 2 + 1, 0.5)]
+        }
+    };
+    for n in nodes {
+        match *n {
+            Node::Exact => {
+                row_col.push(coarse.len() as u32);
+                row_w.push(1.0);
+                coarse.push(Node::Exact);
+            }
+            Node::Lattice(x, y) => {
+                for (cy, wy) in parents(y) {
+                    for (cx, wx) in parents(x) {
+                        if wx * wy == 0.0 {
+                            continue;
+                        }
+                        let slot = &mut id[(cy * w + cx) as usize];
+                        if *slot == u32::MAX {
+                            *slot = coarse.len() as u32;
+                            coarse.push(Node::Lattice(cx, cy));
+                        }
+                        row_col.push(*slot);
+                        row_w.push(wx * wy);
+                    }
+                }
+            }
+        }
+        row_ptr.push(row_col.len());
+    }
+    (
+        Transfer::from_rows(coarse.len(), row_ptr, row_col, row_w),
+        coarse,
+    )
+}
+
+/// Per-channel sums of `f(u_i, v_i)`, in fixed chunks so the bits do not
+/// depend on the thread count.
+fn dots(u: &[f64], v: &[f64], ch: usize) -> [f64; 4] {
+    let parts: Vec<[f64; 4]> = u
+        .par_chunks(CHUNK * ch)
+        .zip(v.par_chunks(CHUNK * ch))
+        .map(|(a, b)| {
+            let mut d = [0.0f64; 4];
+            for (x, y) in a.chunks(ch).zip(b.chunks(ch)) {
+                for c in 0..ch {
+                    d[c] += x[c] * y[c];
+                }
+            }
+            d
+        })
+        .collect();
+    let mut d = [0.0f64; 4];
+    for p in parts {
+        for c in 0..4 {
+            d[c] += p[c];
+        }
+    }
+    d
+}
+
+/// Solves A x = b (`ch` ≤ 4 interleaved channels) by CG preconditioned with
+/// one V-cycle of `m`, from the guess `x0`. Returns x and the iteration count.
+pub fn solve(
+    m: &Hierarchy,
+    b: &[f64],
+    ch: usize,
+    x0: &[f64],
+) -> Result<(Vec<f64>, usize), SolveError> {
+    let a = m.fine();
+    let n = a.n;
+    let mut ws = m.workspace(ch);
+    let mut x = x0.to_vec();
+    let mut r = vec![0.0; n * ch];
+    a.residual(b, &x, &mut r, ch);
+    let mut z = vec![0.0; n * ch];
+    let mut q = vec![0.0; n * ch];
+    m.vcycle(0, &r, &mut z, &mut ws, ch);
+    let mut p = z.clone();
+    let bb = dots(b, b, ch);
+    let mut rz = dots(&r, &z, ch);
+    for it in 1..=MAX_ITERATIONS {
+        a.apply(&p, &mut q, ch);
+        let pq = dots(&p, &q, ch);
+        let mut alpha = [0.0f64; 4];
+        for c in 0..ch {
+            alpha[c] = if pq[c] > 0.0 { rz[c] / pq[c] } else { 0.0 };
+        }
+        let parts: Vec<([f64; 4], f64)> = x
+            .par_chunks_mut(CHUNK * ch)
+            .zip(r.par_chunks_mut(CHUNK * ch))
+            .zip(p.par_chunks(CHUNK * ch))
+            .zip(q.par_chunks(CHUNK * ch))
+            .map(|(((xs, rs), ps), qs)| {
+                let mut rr = [0.0f64; 4];
+                let mut step = 0.0f64;
+                for (((xi, ri), pi), qi) in xs
+                    .chunks_mut(ch)
+                    .zip(rs.chunks_mut(ch))
+                    .zip(ps.chunks(ch))
+                    .zip(qs.chunks(ch))
+                {
+                    for c in 0..ch {
+                        xi[c] += alpha[c] * pi[c];
+                        ri[c] -= alpha[c] * qi[c];
+                        rr[c] += ri[c] * ri[c];
+                        step = step.max((alpha[c] * pi[c]).abs());
+                    }
+                }
+                (rr, step)
+            })
+            .collect();
+        let mut rr = [0.0f64; 4];
+        let mut step = 0.0f64;
+        for (pr, ps) in parts {
+            for c in 0..4 {
+                rr[c] += pr[c];
+            }
+            step = step.max(ps);
+        }
+        tracing::trace!(
+            iteration = it,
+            step_levels = step * 255.0,
+            residual = (rr[0] / bb[0]).sqrt(),
+            "cg"
+        );
+        if step <= STEP_TOLERANCE || (0..ch).all(|c| rr[c] <= RELATIVE_TOLERANCE.powi(2) * bb[c]) {
+            return Ok((x, it));
+        }
+        m.vcycle(0, &r, &mut z, &mut ws, ch);
+        let rz_new = dots(&r, &z, ch);
+        let mut beta = [0.0f64; 4];
+        for c in 0..ch {
+            beta[c] = if rz[c] > 0.0 { rz_new[c] / rz[c] } else { 0.0 };
+        }
+        rz = rz_new;
+        p.par_chunks_mut(CHUNK * ch)
+            .zip(z.par_chunks(CHUNK * ch))
+            .for_each(|(ps, zs)| {
+                for (pi, zi) in ps.chunks_mut(ch).zip(zs.chunks(ch)) {
+                    for c in 0..ch {
+                        pi[c] = zi[c] + beta[c] * pi[c];
+                    }
+                }
+            });
+    }
+    Err(SolveError::NotConverged(MAX_ITERATIONS))
+}
