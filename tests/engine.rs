@@ -286,3 +286,27 @@ fn iterative_and_direct_solves_agree() {
         .fold(0.0f32, f32::max);
     assert!(worst < 1e-3, "solvers differ by {worst} levels");
 }
+
+#[test]
+fn multigrid_solve_does_not_depend_on_the_thread_count() {
+    use seamstress::seam::erase::{erase, EraseOptions, Solver};
+    use seamstress::seam::TexelClasses;
+    let (b, grid, seams) = first_texture("Duck/Duck.gltf");
+    let t = &b.texture;
+    let classes = TexelClasses::new(&grid, &b.triangles, &seams);
+    let solve = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        pool.install(|| {
+            let mut opts = EraseOptions::new(Mode::Local);
+            opts.solver = Solver::Iterative;
+            erase(&grid, &t.data, t.channels, &seams, &classes, &opts)
+                .unwrap()
+                .0
+        })
+    };
+    let one = solve(1);
+    assert!(one == solve(3), "1 and 3 threads give different texels");
+}

@@ -427,7 +427,7 @@ fn distance_from(grid: &TexelGrid, source: &[bool], cap: usize) -> Vec<u32> {
 pub const DIRECT_LIMIT: usize = 100_000;
 /// Texels this close to a seam texel stay unknowns of their own on every
 /// multigrid level (see [`super::multigrid`]).
-const EXACT_RADIUS: u32 = 3;
+const EXACT_RADIUS: u32 = 1;
 
 /// Assembles and solves the energy with the texels in `band` as unknowns.
 #[allow(clippy::too_many_arguments)]

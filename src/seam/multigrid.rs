@@ -8,13 +8,20 @@
 //! full seam penalty). So every level keeps the texels near the seams as
 //! unknowns of their own ("exact" nodes, identity in the prolongation), and
 //! coarsens only the rest, bilinearly by two per level. The coarsest level,
-//! the exact nodes plus a small lattice, is factored directly; it is where the
-//! seam ties are resolved.
+//! the exact nodes plus a small lattice, is factored directly.
+//!
+//! The smoother follows the same split. Gauss–Seidel relaxes the lattice
+//! rows; the exact rows, whose stiff ties a pointwise sweep cannot follow, are
+//! relaxed together by one block solve. Their block of the operator is the
+//! same on every level (the prolongation is the identity there), so one
+//! factorisation serves them all. Against Gauss–Seidel on every row with a
+//! three-texel margin, this (with a one-texel margin) takes Fox from 14 CG
+//! iterations to 9 and blub from 7 to 5.
 //!
 //! Coarse operators are Galerkin products PᵀAP, so every level describes the
-//! same energy. One V-cycle with a symmetric Gauss–Seidel sweep on each side
-//! is a symmetric preconditioner, and CG turns it into the solution of the
-//! fine system to the tolerance below: the hierarchy decides only how fast.
+//! same energy. A V-cycle whose post-smoother reverses its pre-smoother is a
+//! symmetric preconditioner, and CG turns it into the solution of the fine
+//! system to the tolerance below: the hierarchy decides only how fast.
 
 use rayon::prelude::*;
 
@@ -51,6 +58,12 @@ pub struct Hierarchy {
     /// `transfers[l]` prolongs from level l+1 to level l.
     transfers: Vec<Transfer>,
     coarsest: Cholesky,
+    /// The exact nodes of each level above the coarsest, and the factor of
+    /// their block, which is the same on every level (P is the identity there).
+    exact: Vec<Vec<u32>>,
+    exact_block: Option<Cholesky>,
+    /// The rows Gauss–Seidel relaxes on each level above the coarsest.
+    relaxed: Vec<Vec<u32>>,
 }
 
 impl Hierarchy {
@@ -60,7 +73,16 @@ impl Hierarchy {
         let mut ops = vec![a];
         let mut transfers = Vec::new();
         let mut nodes = nodes;
+        let mut exact = Vec::new();
         loop {
+            exact.push(
+                nodes
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, n)| **n == Node::Exact)
+                    .map(|(i, _)| i as u32)
+                    .collect::<Vec<u32>>(),
+            );
             let lattice = nodes.iter().filter(|n| **n != Node::Exact).count();
             if lattice <= COARSEST_LATTICE {
                 break;
@@ -71,7 +93,27 @@ impl Hierarchy {
             ops.push(ac);
             nodes = coarse;
         }
-        let built = t.elapsed();
+        let galerkin = t.elapsed();
+        exact.pop();
+        let exact_block = match exact.first() {
+            Some(rows) if !rows.is_empty() => {
+                Some(Cholesky::new(&ops[0].submatrix(rows)?.to_faer())?)
+            }
+            _ => None,
+        };
+        // Gauss–Seidel relaxes the lattice rows only: the exact block solve
+        // does the exact rows, whose seam ties no pointwise sweep can follow.
+        let relaxed: Vec<Vec<u32>> = ops
+            .iter()
+            .zip(&exact)
+            .map(|(a, rows)| {
+                let mut lattice = vec![true; a.n];
+                for &i in rows {
+                    lattice[i as usize] = false;
+                }
+                (0..a.n as u32).filter(|&i| lattice[i as usize]).collect()
+            })
+            .collect();
         // Hat functions of neighbouring lattice nodes can coincide on a lone
         // texel at a ragged band edge, which leaves the Galerkin operator
         // singular. A relative diagonal shift keeps the coarsest factor
@@ -84,8 +126,8 @@ impl Hierarchy {
             fine = ops.first().map_or(last.n, |a| a.n),
             coarsest = last.n,
             coarsest_exact = nodes.iter().filter(|n| **n == Node::Exact).count(),
-            galerkin_ms = built.as_millis() as u64,
-            factor_ms = (t.elapsed() - built).as_millis() as u64,
+            galerkin_ms = galerkin.as_millis() as u64,
+            factor_ms = (t.elapsed() - galerkin).as_millis() as u64,
             "multigrid hierarchy"
         );
         ops.push(last);
@@ -93,7 +135,26 @@ impl Hierarchy {
             ops,
             transfers,
             coarsest,
+            exact,
+            exact_block,
+            relaxed,
         })
+    }
+
+    /// z += the exact correction on level `l`'s exact nodes, the rest held.
+    fn exact_correction(&self, l: usize, r: &[f64], z: &mut [f64], ch: usize) {
+        let (Some(block), Some(rows)) = (&self.exact_block, self.exact.get(l)) else {
+            return;
+        };
+        let mut s = vec![0.0; rows.len() * ch];
+        self.ops[l].residual_rows(rows, r, z, &mut s, ch);
+        let d = block.solve_interleaved(&s, ch);
+
+        for (k, &i) in rows.iter().enumerate() {
+            for c in 0..ch {
+                z[i as usize * ch + c] += d[k * ch + c];
+            }
+        }
     }
 
     fn fine(&self) -> &SymCsr {
@@ -112,12 +173,14 @@ impl Hierarchy {
         let a = &self.ops[l];
         let p = &self.transfers[l];
         z.fill(0.0);
-        a.gauss_seidel(r, z, ch, true);
+        a.gauss_seidel(&self.relaxed[l], r, z, ch, true);
+        self.exact_correction(l, r, z, ch);
         a.residual(r, z, &mut w.residual, ch);
         p.restrict(&w.residual, &mut w.coarse_rhs, ch);
         self.vcycle(l + 1, &w.coarse_rhs, &mut w.coarse_z, rest, ch);
         p.prolong_add(&w.coarse_z, z, ch);
-        a.gauss_seidel(r, z, ch, false);
+        self.exact_correction(l, r, z, ch);
+        a.gauss_seidel(&self.relaxed[l], r, z, ch, false);
     }
 
     fn workspace(&self, ch: usize) -> Vec<Work> {

@@ -69,6 +69,49 @@ impl SymCsr {
         }
     }
 
+    /// The principal submatrix on `rows` (increasing), renumbered 0..rows.len().
+    pub fn submatrix(&self, rows: &[u32]) -> Result<SymCsr, SolveError> {
+        let mut local = vec![u32::MAX; self.n];
+        for (k, &i) in rows.iter().enumerate() {
+            local[i as usize] = k as u32;
+        }
+        let mut ptr = Vec::with_capacity(rows.len() + 1);
+        ptr.push(0);
+        let mut col = Vec::new();
+        let mut val = Vec::new();
+        for &i in rows {
+            for e in self.ptr[i as usize]..self.ptr[i as usize + 1] {
+                let k = local[self.col[e] as usize];
+                if k != u32::MAX {
+                    col.push(k);
+                    val.push(self.val[e]);
+                }
+            }
+            ptr.push(col.len());
+        }
+        SymCsr::from_parts(ptr, col, val)
+    }
+
+    /// (b − A z) on the rows `rows`, gathered in their order.
+    pub fn residual_rows(&self, rows: &[u32], b: &[f64], z: &[f64], out: &mut [f64], ch: usize) {
+        out.par_chunks_mut(CHUNK * ch)
+            .enumerate()
+            .for_each(|(blk, os)| {
+                for (k, o) in os.chunks_mut(ch).enumerate() {
+                    let i = rows[blk * CHUNK + k] as usize;
+                    let mut s = [0.0f64; 4];
+                    s[..ch].copy_from_slice(&b[i * ch..(i + 1) * ch]);
+                    for e in self.ptr[i]..self.ptr[i + 1] {
+                        let (j, a) = (self.col[e] as usize, self.val[e]);
+                        for c in 0..ch {
+                            s[c] -= a * z[j * ch + c];
+                        }
+                    }
+                    o.copy_from_slice(&s[..ch]);
+                }
+            });
+    }
+
     /// For faer's Cholesky, which reads the lower triangle of a CSC matrix.
     pub fn to_faer(&self) -> SparseColMat<u32, f64> {
         SparseColMat::new(
@@ -110,8 +153,9 @@ impl SymCsr {
 
     /// One Gauss–Seidel sweep on A z = r in place, forwards or backwards.
     /// A forward sweep followed by a backward one is a symmetric smoother.
-    pub fn gauss_seidel(&self, r: &[f64], z: &mut [f64], ch: usize, forward: bool) {
-        let mut sweep = |i: usize| {
+    pub fn gauss_seidel(&self, rows: &[u32], r: &[f64], z: &mut [f64], ch: usize, forward: bool) {
+        let mut sweep = |&i: &u32| {
+            let i = i as usize;
             let mut s = [0.0f64; 4];
             s[..ch].copy_from_slice(&r[i * ch..(i + 1) * ch]);
             for e in self.ptr[i]..self.ptr[i + 1] {
@@ -127,18 +171,18 @@ impl SymCsr {
             }
         };
         if forward {
-            (0..self.n).for_each(&mut sweep);
+            rows.iter().for_each(&mut sweep);
         } else {
-            (0..self.n).rev().for_each(&mut sweep);
+            rows.iter().rev().for_each(&mut sweep);
         }
     }
 
     /// The Galerkin product Pᵀ A P, row by row over the coarse unknowns.
     pub fn galerkin(&self, p: &Transfer) -> Result<SymCsr, SolveError> {
         let nc = p.coarse;
-        // A few large tasks, each with one dense accumulator over the coarse
+        // One task per thread, each with one dense accumulator over the coarse
         // unknowns; a row's sum runs in a fixed order whichever task computes it.
-        let tasks = (rayon::current_num_threads() * 4).clamp(1, nc.max(1));
+        let tasks = rayon::current_num_threads().clamp(1, nc.max(1));
         let per = nc.div_ceil(tasks);
         let chunks: Vec<(Vec<usize>, Vec<u32>, Vec<f64>)> = (0..tasks)
             .into_par_iter()
@@ -149,8 +193,9 @@ impl SymCsr {
                 let mut cols = Vec::<u32>::new();
                 let rows = (b * per).min(nc)..((b + 1) * per).min(nc);
                 let mut lens = Vec::with_capacity(rows.len());
-                let mut out_col = Vec::new();
-                let mut out_val = Vec::new();
+                // Bilinear coarsening keeps about nine entries a row.
+                let mut out_col = Vec::with_capacity(rows.len() * 10);
+                let mut out_val = Vec::with_capacity(rows.len() * 10);
                 for k in rows {
                     cols.clear();
                     for (i, wi) in p.fine_of(k) {
@@ -404,8 +449,9 @@ mod tests {
         let mut b = vec![0.0; 100];
         a.apply(&x, &mut b, 2);
         let mut z = vec![0.0; 100];
+        let rows: Vec<u32> = (0..50).collect();
         for k in 0..60 {
-            a.gauss_seidel(&b, &mut z, 2, k % 2 == 0);
+            a.gauss_seidel(&rows, &b, &mut z, 2, k % 2 == 0);
         }
         let worst = z
             .iter()
