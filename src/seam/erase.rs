@@ -163,7 +163,8 @@ pub fn erase(
     opts: &EraseOptions,
 ) -> Result<(Vec<f32>, EraseStats), EraseError> {
     let w = &opts.weights;
-    let terms = SeamTerms::new(grid, seams, w, input, channels);
+    let mut terms = SeamTerms::new(grid, seams, w, input, channels);
+    let jumps = std::mem::take(&mut terms.jumps);
     if terms.points.is_empty() {
         return Ok((input.to_vec(), EraseStats::default()));
     }
@@ -212,7 +213,7 @@ pub fn erase(
     // `MIN_BAND` decay lengths (changes driven by the C1 term or by distant
     // jumps are caught by the check after the solve).
     let mut reach = vec![-1i32; grid.len()];
-    for &(t, jump) in &terms.jumps {
+    for &(t, jump) in &jumps {
         if 0.5 * jump > tol {
             // Each side of the seam takes about half the jump.
             let need = ((0.5 * jump / tol).ln() * decay_len).ceil() as i32 + 1;
@@ -227,6 +228,7 @@ pub fn erase(
         .zip(&movable)
         .map(|((&d, &r), &m)| m && (d <= base || r >= 0))
         .collect();
+    drop((reach, jumps));
     let mut solves = 0;
     // A wider band starts from the narrower band's solution, which is already
     // right near the seams.
@@ -486,7 +488,7 @@ fn solve_band(
             x0.extend(start[t * ch..(t + 1) * ch].iter().map(|&v| f64::from(v)));
         }
         let m = Hierarchy::new(a, nodes)?;
-        let (x, iterations) = multigrid::solve(&m, &b, ch, &x0)?;
+        let (x, iterations) = multigrid::solve(&m, &b, ch, x0)?;
         tracing::debug!(unknowns = n, iterations, "multigrid solve");
         x
     };

@@ -289,12 +289,12 @@ pub fn solve(
     m: &Hierarchy,
     b: &[f64],
     ch: usize,
-    x0: &[f64],
+    x0: Vec<f64>,
 ) -> Result<(Vec<f64>, usize), SolveError> {
     let a = m.fine();
     let n = a.n;
     let mut ws = m.workspace(ch);
-    let mut x = x0.to_vec();
+    let mut x = x0;
     let mut r = vec![0.0; n * ch];
     a.residual(b, &x, &mut r, ch);
     let mut z = vec![0.0; n * ch];
