@@ -17,10 +17,12 @@
 //! the decaying a·r^d to a·(r^d − r^(2R+2−d)): the band's edge texels keep only
 //! (1 − r²) of their true change, and the first texels outside miss
 //! a·r^(R+1) = edge·r/(1 − r²), about ten times the edge change in local mode.
-//! So we solve for the texels within R (Chebyshev distance) of a seam texel,
-//! then, wherever an edge texel's change implies a miss above the tolerance
-//! (1e-3 levels by default), widen the band around that texel by the decay
-//! steps still needed, and solve again from the previous solution.
+//! The first band reaches, around each seam texel, as many texels (Chebyshev
+//! distance) as the decay needs to bring half the input's jump there (what
+//! each side takes) below the tolerance, 1e-3 levels by default. After the
+//! solve, wherever an edge texel's change implies a miss above the tolerance,
+//! the band widens around that texel by the decay steps still needed, and the
+//! system is solved again from the previous solution.
 
 use super::assemble::{assemble, Weights};
 use super::grid::TexelGrid;
@@ -97,7 +99,8 @@ impl EraseOptions {
 #[derive(Clone, Copy, Debug, Default, serde::Serialize)]
 pub struct EraseStats {
     pub unknowns: usize,
-    /// Band radius in texels (`None`: every texel that may change was solved for).
+    /// The largest Chebyshev distance from a seam texel of any texel solved
+    /// for (`None`: every texel that may change was solved for).
     pub band_radius: Option<usize>,
     pub solves: usize,
 }
