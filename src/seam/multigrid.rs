@@ -62,8 +62,8 @@ pub struct Hierarchy {
     /// their block, which is the same on every level (P is the identity there).
     exact: Vec<Vec<u32>>,
     exact_block: Option<Cholesky>,
-    /// The rows Gauss–Seidel relaxes on each level above the coarsest.
-    relaxed: Vec<Vec<u32>>,
+    /// How Gauss–Seidel sweeps each level above the coarsest.
+    sweeps: Vec<Sweep>,
 }
 
 impl Hierarchy {
@@ -74,7 +74,9 @@ impl Hierarchy {
         let mut transfers = Vec::new();
         let mut nodes = nodes;
         let mut exact = Vec::new();
+        let mut sweeps = Vec::new();
         loop {
+            sweeps.push(Sweep::new(&ops[ops.len() - 1], &nodes));
             exact.push(
                 nodes
                     .iter()
@@ -95,25 +97,13 @@ impl Hierarchy {
         }
         let galerkin = t.elapsed();
         exact.pop();
+        sweeps.pop();
         let exact_block = match exact.first() {
             Some(rows) if !rows.is_empty() => {
                 Some(Cholesky::new(&ops[0].submatrix(rows)?.to_faer())?)
             }
             _ => None,
         };
-        // Gauss–Seidel relaxes the lattice rows only: the exact block solve
-        // does the exact rows, whose seam ties no pointwise sweep can follow.
-        let relaxed: Vec<Vec<u32>> = ops
-            .iter()
-            .zip(&exact)
-            .map(|(a, rows)| {
-                let mut lattice = vec![true; a.n];
-                for &i in rows {
-                    lattice[i as usize] = false;
-                }
-                (0..a.n as u32).filter(|&i| lattice[i as usize]).collect()
-            })
-            .collect();
         // Hat functions of neighbouring lattice nodes can coincide on a lone
         // texel at a ragged band edge, which leaves the Galerkin operator
         // singular. A relative diagonal shift keeps the coarsest factor
@@ -137,7 +127,7 @@ impl Hierarchy {
             coarsest,
             exact,
             exact_block,
-            relaxed,
+            sweeps,
         })
     }
 
@@ -173,14 +163,14 @@ impl Hierarchy {
         let a = &self.ops[l];
         let p = &self.transfers[l];
         z.fill(0.0);
-        a.gauss_seidel(&self.relaxed[l], r, z, ch, true);
+        self.sweeps[l].run(a, r, z, ch, true);
         self.exact_correction(l, r, z, ch);
         a.residual(r, z, &mut w.residual, ch);
         p.restrict(&w.residual, &mut w.coarse_rhs, ch);
         self.vcycle(l + 1, &w.coarse_rhs, &mut w.coarse_z, rest, ch);
         p.prolong_add(&w.coarse_z, z, ch);
         self.exact_correction(l, r, z, ch);
-        a.gauss_seidel(&self.relaxed[l], r, z, ch, false);
+        self.sweeps[l].run(a, r, z, ch, false);
     }
 
     fn workspace(&self, ch: usize) -> Vec<Work> {
@@ -192,6 +182,94 @@ impl Hierarchy {
                 coarse_z: vec![0.0; p.coarse * ch],
             })
             .collect()
+    }
+}
+
+/// Lattice rows per stripe of this many lattice rows.
+const STRIPE: u32 = 8;
+
+/// Gauss–Seidel on one level's lattice rows (the exact rows are relaxed by
+/// the block solve: no pointwise sweep can follow their seam ties).
+///
+/// The rows go in stripes of [`STRIPE`] lattice rows. A lattice row couples
+/// only to lattice rows one lattice step away and to exact rows, so stripes of
+/// the same parity share nothing a sweep writes, and run in parallel: even
+/// stripes, then odd ones (the backward sweep reverses everything). This is
+/// Gauss–Seidel in a fixed order, whatever the number of threads.
+struct Sweep {
+    /// `stripes[c]`: the stripes of parity c, each its rows in increasing order.
+    stripes: [Vec<Vec<u32>>; 2],
+}
+
+impl Sweep {
+    fn new(a: &SymCsr, nodes: &[Node]) -> Self {
+        let stripe_of = |i: usize| match nodes[i] {
+            Node::Lattice(_, y) => Some(y / STRIPE),
+            Node::Exact => None,
+        };
+        let count = nodes
+            .iter()
+            .filter_map(|n| match n {
+                Node::Lattice(_, y) => Some(y / STRIPE + 1),
+                Node::Exact => None,
+            })
+            .max()
+            .unwrap_or(0) as usize;
+        let mut by_stripe = vec![Vec::new(); count];
+        let mut local = true;
+        for i in 0..a.n {
+            let Some(s) = stripe_of(i) else { continue };
+            by_stripe[s as usize].push(i as u32);
+            for e in a.ptr[i]..a.ptr[i + 1] {
+                if let Some(t) = stripe_of(a.col[e] as usize) {
+                    local &= s.abs_diff(t) <= 1;
+                }
+            }
+        }
+        if !local {
+            // Not expected from bilinear coarsening; stay correct regardless.
+            let all = by_stripe.into_iter().flatten().collect::<Vec<u32>>();
+            let mut rows = all;
+            rows.sort_unstable();
+            return Sweep {
+                stripes: [vec![rows], Vec::new()],
+            };
+        }
+        let mut stripes = [Vec::new(), Vec::new()];
+        for (s, rows) in by_stripe.into_iter().enumerate() {
+            if !rows.is_empty() {
+                stripes[s % 2].push(rows);
+            }
+        }
+        Sweep { stripes }
+    }
+
+    fn run(&self, a: &SymCsr, r: &[f64], z: &mut [f64], ch: usize, forward: bool) {
+        assert!(ch <= 4 && z.len() >= a.n * ch && r.len() >= a.n * ch);
+        let order = if forward { [0, 1] } else { [1, 0] };
+        let shared = Shared(z.as_mut_ptr());
+        for colour in order {
+            self.stripes[colour].par_iter().for_each(|rows| {
+                // SAFETY: `z` is exclusively borrowed for this call and holds
+                // n·ch values; the rows come from 0..n (`Sweep::new`). A task
+                // writes only its own rows, and reads its own rows, rows of
+                // the other parity (which no task writes in this phase) and
+                // exact rows (which no sweep writes), as `Sweep::new` checked.
+                unsafe { a.gauss_seidel_raw(rows, r, shared.get(), ch, forward) };
+            });
+        }
+    }
+}
+
+/// A pointer that may cross threads; see the one use in [`Sweep::run`].
+#[derive(Clone, Copy)]
+struct Shared(*mut f64);
+unsafe impl Send for Shared {}
+unsafe impl Sync for Shared {}
+
+impl Shared {
+    fn get(self) -> *mut f64 {
+        self.0
     }
 }
 

@@ -31,6 +31,11 @@ impl SymCsr {
     /// From rows already sorted by column, each holding its diagonal.
     pub fn from_parts(ptr: Vec<usize>, col: Vec<u32>, val: Vec<f64>) -> Result<Self, SolveError> {
         let n = ptr.len().saturating_sub(1);
+        if let Some(&c) = col.iter().find(|&&c| c as usize >= n) {
+            return Err(SolveError::Assembly(format!(
+                "column {c} out of range for {n} rows"
+            )));
+        }
         let mut diag = Vec::with_capacity(n);
         for i in 0..n {
             let row = &col[ptr[i]..ptr[i + 1]];
@@ -151,29 +156,56 @@ impl SymCsr {
         r.par_iter_mut().zip(b).for_each(|(ri, bi)| *ri = bi - *ri);
     }
 
-    /// One Gauss–Seidel sweep on A z = r in place, forwards or backwards.
-    /// A forward sweep followed by a backward one is a symmetric smoother.
+    /// One Gauss–Seidel sweep on A z = r in place over `rows`, forwards or
+    /// backwards. A forward sweep followed by a backward one is a symmetric smoother.
     pub fn gauss_seidel(&self, rows: &[u32], r: &[f64], z: &mut [f64], ch: usize, forward: bool) {
-        let mut sweep = |&i: &u32| {
+        assert!(ch <= 4 && z.len() >= self.n * ch && r.len() >= self.n * ch);
+        assert!(rows.iter().all(|&i| (i as usize) < self.n));
+        // SAFETY: `z` is exclusively borrowed and long enough for every row
+        // and column index (columns are checked in `from_parts`).
+        unsafe { self.gauss_seidel_raw(rows, r, z.as_mut_ptr(), ch, forward) }
+    }
+
+    /// [`Self::gauss_seidel`] through a raw pointer, so that tasks may sweep
+    /// disjoint sets of rows of one vector at once.
+    ///
+    /// # Safety
+    /// `z` must hold `n·ch` values; `rows` must be below `n`, `ch` at most 4,
+    /// and no other thread may write an entry this sweep reads or writes, or
+    /// read an entry it writes, while it runs.
+    pub unsafe fn gauss_seidel_raw(
+        &self,
+        rows: &[u32],
+        r: &[f64],
+        z: *mut f64,
+        ch: usize,
+        forward: bool,
+    ) {
+        let sweep = |&i: &u32| {
             let i = i as usize;
             let mut s = [0.0f64; 4];
             s[..ch].copy_from_slice(&r[i * ch..(i + 1) * ch]);
             for e in self.ptr[i]..self.ptr[i + 1] {
                 let (j, a) = (self.col[e] as usize, self.val[e]);
-                for c in 0..ch {
-                    s[c] -= a * z[j * ch + c];
+                for (c, sc) in s[..ch].iter_mut().enumerate() {
+                    // SAFETY: j < n (checked in `from_parts`), c < ch: in bounds.
+                    *sc -= a * unsafe { z.add(j * ch + c).read() };
                 }
             }
             let d = self.val[self.diag[i]];
-            for c in 0..ch {
+            for (c, sc) in s[..ch].iter().enumerate() {
                 // `s` subtracted the diagonal term too; add it back in the update.
-                z[i * ch + c] += s[c] / d;
+                // SAFETY: i < n by the caller's contract.
+                unsafe {
+                    let zi = z.add(i * ch + c);
+                    zi.write(zi.read() + sc / d);
+                }
             }
         };
         if forward {
-            rows.iter().for_each(&mut sweep);
+            rows.iter().for_each(sweep);
         } else {
-            rows.iter().rev().for_each(&mut sweep);
+            rows.iter().rev().for_each(sweep);
         }
     }
 
