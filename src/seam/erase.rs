@@ -380,52 +380,14 @@ fn decay_per_texel(c: f64) -> f64 {
 }
 
 /// Chebyshev distance (in texels, capped at `cap`) to the nearest `source`
-/// texel: two raster passes of the 3×3 chamfer, exact for this metric.
+/// texel: `cap` less how far a reach of `cap` from every source spreads.
 fn distance_from(grid: &TexelGrid, source: &[bool], cap: usize) -> Vec<u32> {
-    let (w, h) = (grid.width, grid.height);
-    let far = cap.min(u32::MAX as usize - 1) as u32;
-    let mut d: Vec<u32> = source.iter().map(|&s| if s { 0 } else { far }).collect();
-    for y in 0..h {
-        for x in 0..w {
-            let i = y * w + x;
-            let mut m = d[i];
-            if x > 0 {
-                m = m.min(d[i - 1] + 1);
-            }
-            if y > 0 {
-                let up = i - w;
-                m = m.min(d[up] + 1);
-                if x > 0 {
-                    m = m.min(d[up - 1] + 1);
-                }
-                if x + 1 < w {
-                    m = m.min(d[up + 1] + 1);
-                }
-            }
-            d[i] = m.min(far);
-        }
-    }
-    for y in (0..h).rev() {
-        for x in (0..w).rev() {
-            let i = y * w + x;
-            let mut m = d[i];
-            if x + 1 < w {
-                m = m.min(d[i + 1] + 1);
-            }
-            if y + 1 < h {
-                let down = i + w;
-                m = m.min(d[down] + 1);
-                if x + 1 < w {
-                    m = m.min(d[down + 1] + 1);
-                }
-                if x > 0 {
-                    m = m.min(d[down - 1] + 1);
-                }
-            }
-            d[i] = m.min(far);
-        }
-    }
-    d
+    let cap = cap.min(i32::MAX as usize / 2) as i32;
+    // Far below any reach, and far enough above i32::MIN to step down from.
+    let none = i32::MIN / 2;
+    let mut reach: Vec<i32> = source.iter().map(|&s| if s { cap } else { none }).collect();
+    spread_down(&mut reach, grid.width, grid.height);
+    reach.iter().map(|&r| (cap - r.max(0)) as u32).collect()
 }
 
 /// Above this many unknowns, multigrid CG beats a direct factorisation.
@@ -608,6 +570,35 @@ mod tests {
             }
         }
         w.seam * seam + w.change * change + w.grad * grad + w.c1 * c1
+    }
+
+    #[test]
+    fn distance_is_the_capped_chebyshev_distance() {
+        let grid = TexelGrid {
+            width: 13,
+            height: 9,
+            wrap_s: Wrap::Repeat,
+            wrap_t: Wrap::Repeat,
+        };
+        let sources = [(2usize, 1usize), (10, 7), (5, 5)];
+        let mut source = vec![false; grid.len()];
+        for &(x, y) in &sources {
+            source[y * 13 + x] = true;
+        }
+        for cap in [3, 100] {
+            let d = distance_from(&grid, &source, cap);
+            for y in 0..9usize {
+                for x in 0..13usize {
+                    let brute = sources
+                        .iter()
+                        .map(|&(sx, sy)| x.abs_diff(sx).max(y.abs_diff(sy)))
+                        .min()
+                        .unwrap_or(usize::MAX)
+                        .min(cap);
+                    assert_eq!(d[y * 13 + x] as usize, brute, "({x},{y}) cap {cap}");
+                }
+            }
+        }
     }
 
     #[test]

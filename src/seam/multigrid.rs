@@ -303,8 +303,7 @@ impl Sweep {
         }
         if !local {
             // Not expected from bilinear coarsening; stay correct regardless.
-            let all = by_stripe.into_iter().flatten().collect::<Vec<u32>>();
-            let mut rows = all;
+            let mut rows: Vec<u32> = by_stripe.into_iter().flatten().collect();
             rows.sort_unstable();
             return Sweep {
                 stripes: [vec![rows], Vec::new()],

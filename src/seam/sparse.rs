@@ -57,14 +57,6 @@ impl SymCsr {
         })
     }
 
-    pub fn nnz(&self) -> usize {
-        self.col.len()
-    }
-
-    pub fn diagonal(&self, i: usize) -> f64 {
-        self.val[self.diag[i]]
-    }
-
     /// Scales the diagonal entries of the rows where `pick` holds by `1 + shift`.
     pub fn shift_diagonal(&mut self, shift: f64, pick: impl Fn(usize) -> bool) {
         for i in 0..self.n {

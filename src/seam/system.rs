@@ -186,7 +186,7 @@ impl Cholesky {
     }
 
     /// Overwrites `rhs` (one column per channel) with A⁻¹·rhs.
-    pub fn solve_in_place(&self, rhs: MatMut<'_, f64>) {
+    fn solve_in_place(&self, rhs: MatMut<'_, f64>) {
         // Sequential: with a handful of right-hand sides the triangular solves
         // are memory-bound, and forking per supernode costs more than it saves.
         let mut mem = MemBuffer::new(
