@@ -8,6 +8,7 @@
 
 use std::time::Instant;
 
+use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::bc1::dds::{write_dds, DdsHeaderKind, MipLevel};
@@ -236,14 +237,15 @@ fn erase_level(
             (out, EraseStats::default())
         }
     };
-    let float = Texture {
+    let like = |data| Texture {
+        width: tex.width,
+        height: tex.height,
+        channels: tex.channels,
         data,
-        ..tex.clone()
+        encoding: tex.encoding,
     };
-    let stored = Texture {
-        data: quantized(&float.data, tex.encoding.bits),
-        ..tex.clone()
-    };
+    let stored = like(quantized(&data, tex.encoding.bits));
+    let float = like(data);
     Ok(ErasedLevel {
         grid,
         seams,
@@ -259,7 +261,7 @@ fn erase_level(
 /// Rounds to what the output file stores, so every metric describes the file.
 fn quantized(data: &[f32], bits: u8) -> Vec<f32> {
     let levels = ((1u32 << bits) - 1) as f32;
-    data.iter()
+    data.par_iter()
         .map(|v| (v.clamp(0.0, 1.0) * levels).round() / levels)
         .collect()
 }

@@ -166,6 +166,7 @@ pub fn erase(
     opts: &EraseOptions,
 ) -> Result<(Vec<f32>, EraseStats), EraseError> {
     let w = &opts.weights;
+    let t0 = std::time::Instant::now();
     let mut terms = SeamTerms::new(grid, seams, w, input, channels);
     let jumps = std::mem::take(&mut terms.jumps);
     if terms.points.is_empty() {
@@ -182,6 +183,10 @@ pub fn erase(
 
     let max_radius = grid.width.max(grid.height);
     let dist = distance_from(grid, &classes.seam, max_radius);
+    tracing::debug!(
+        elapsed_ms = t0.elapsed().as_millis() as u64,
+        "seam terms and distances"
+    );
     // `start`: the texel values an iterative solve starts from.
     let solve = |band: &[bool], start: &[f32]| {
         solve_band(
@@ -232,6 +237,10 @@ pub fn erase(
         .map(|((&d, &r), &m)| m && (d <= base || r >= 0))
         .collect();
     drop((reach, jumps));
+    tracing::debug!(
+        elapsed_ms = t0.elapsed().as_millis() as u64,
+        "first band chosen"
+    );
     let mut solves = 0;
     // A wider band starts from the narrower band's solution, which is already
     // right near the seams.
@@ -418,6 +427,7 @@ fn solve_band(
         n += 1;
     }
     let n = n as usize;
+    let t0 = std::time::Instant::now();
     let weights = Weights {
         change,
         free_anchor: change * 1e-6,
@@ -433,6 +443,10 @@ fn solve_band(
         n,
         &weights,
     )?;
+    tracing::debug!(
+        elapsed_ms = t0.elapsed().as_millis() as u64,
+        "band assembled"
+    );
     let direct = match solver {
         Solver::Auto => n <= DIRECT_LIMIT,
         Solver::Direct => true,
@@ -452,7 +466,15 @@ fn solve_band(
             });
             x0.extend(start[t * ch..(t + 1) * ch].iter().map(|&v| f64::from(v)));
         }
+        tracing::debug!(
+            elapsed_ms = t0.elapsed().as_millis() as u64,
+            "multigrid nodes placed"
+        );
         let m = Hierarchy::new(a, nodes)?;
+        tracing::debug!(
+            elapsed_ms = t0.elapsed().as_millis() as u64,
+            "multigrid hierarchy built"
+        );
         let (x, iterations) = multigrid::solve(&m, &b, ch, x0)?;
         tracing::debug!(unknowns = n, iterations, "multigrid solve");
         x

@@ -11,6 +11,20 @@ use rayon::prelude::*;
 
 use super::system::SolveError;
 
+/// Calls a kernel with the channel count as a constant (1 to 4), so that its
+/// per-row channel loops unroll and short copies stay inline.
+macro_rules! by_channels {
+    ($ch:expr, $recv:ident . $f:ident ( $($arg:expr),* )) => {
+        match $ch {
+            1 => $recv.$f::<1>($($arg),*),
+            2 => $recv.$f::<2>($($arg),*),
+            3 => $recv.$f::<3>($($arg),*),
+            4 => $recv.$f::<4>($($arg),*),
+            c => panic!("{c} channels: at most 4 are supported"),
+        }
+    };
+}
+
 /// Rows per parallel task: large enough to amortise scheduling, small enough
 /// to balance two to a few dozen threads.
 const CHUNK: usize = 8192;
@@ -91,20 +105,24 @@ impl SymCsr {
 
     /// (b − A z) on the rows `rows`, gathered in their order.
     pub fn residual_rows(&self, rows: &[u32], b: &[f64], z: &[f64], out: &mut [f64], ch: usize) {
-        out.par_chunks_mut(CHUNK * ch)
+        by_channels!(ch, self.residual_rows_n(rows, b, z, out))
+    }
+
+    fn residual_rows_n<const C: usize>(&self, rows: &[u32], b: &[f64], z: &[f64], out: &mut [f64]) {
+        out.par_chunks_mut(CHUNK * C)
             .enumerate()
             .for_each(|(blk, os)| {
-                for (k, o) in os.chunks_mut(ch).enumerate() {
+                for (k, o) in os.chunks_exact_mut(C).enumerate() {
                     let i = rows[blk * CHUNK + k] as usize;
-                    let mut s = [0.0f64; 4];
-                    s[..ch].copy_from_slice(&b[i * ch..(i + 1) * ch]);
+                    let mut s: [f64; C] = b[i * C..(i + 1) * C].try_into().expect("C values");
                     for e in self.ptr[i]..self.ptr[i + 1] {
                         let (j, a) = (self.col[e] as usize, self.val[e]);
-                        for c in 0..ch {
-                            s[c] -= a * z[j * ch + c];
+                        let zj = &z[j * C..(j + 1) * C];
+                        for c in 0..C {
+                            s[c] -= a * zj[c];
                         }
                     }
-                    o.copy_from_slice(&s[..ch]);
+                    o.copy_from_slice(&s);
                 }
             });
     }
@@ -125,21 +143,24 @@ impl SymCsr {
 
     /// y = A x.
     pub fn apply(&self, x: &[f64], y: &mut [f64], ch: usize) {
-        y.par_chunks_mut(CHUNK * ch)
-            .enumerate()
-            .for_each(|(b, ys)| {
-                for (k, yi) in ys.chunks_mut(ch).enumerate() {
-                    let i = b * CHUNK + k;
-                    let mut s = [0.0f64; 4];
-                    for e in self.ptr[i]..self.ptr[i + 1] {
-                        let (j, a) = (self.col[e] as usize, self.val[e]);
-                        for c in 0..ch {
-                            s[c] += a * x[j * ch + c];
-                        }
+        by_channels!(ch, self.apply_n(x, y))
+    }
+
+    fn apply_n<const C: usize>(&self, x: &[f64], y: &mut [f64]) {
+        y.par_chunks_mut(CHUNK * C).enumerate().for_each(|(b, ys)| {
+            for (k, yi) in ys.chunks_exact_mut(C).enumerate() {
+                let i = b * CHUNK + k;
+                let mut s = [0.0f64; C];
+                for e in self.ptr[i]..self.ptr[i + 1] {
+                    let (j, a) = (self.col[e] as usize, self.val[e]);
+                    let xj = &x[j * C..(j + 1) * C];
+                    for c in 0..C {
+                        s[c] += a * xj[c];
                     }
-                    yi.copy_from_slice(&s[..ch]);
                 }
-            });
+                yi.copy_from_slice(&s);
+            }
+        });
     }
 
     /// r − A x.
@@ -173,23 +194,35 @@ impl SymCsr {
         ch: usize,
         forward: bool,
     ) {
+        // SAFETY: the caller's contract, passed on.
+        unsafe { by_channels!(ch, self.gauss_seidel_n(rows, r, z, forward)) }
+    }
+
+    /// # Safety
+    /// As [`Self::gauss_seidel_raw`], with `C` channels.
+    unsafe fn gauss_seidel_n<const C: usize>(
+        &self,
+        rows: &[u32],
+        r: &[f64],
+        z: *mut f64,
+        forward: bool,
+    ) {
         let sweep = |&i: &u32| {
             let i = i as usize;
-            let mut s = [0.0f64; 4];
-            s[..ch].copy_from_slice(&r[i * ch..(i + 1) * ch]);
+            let mut s: [f64; C] = r[i * C..(i + 1) * C].try_into().expect("C values");
             for e in self.ptr[i]..self.ptr[i + 1] {
                 let (j, a) = (self.col[e] as usize, self.val[e]);
-                for (c, sc) in s[..ch].iter_mut().enumerate() {
-                    // SAFETY: j < n (checked in `from_parts`), c < ch: in bounds.
-                    *sc -= a * unsafe { z.add(j * ch + c).read() };
+                for (c, sc) in s.iter_mut().enumerate() {
+                    // SAFETY: j < n (checked in `from_parts`), c < C: in bounds.
+                    *sc -= a * unsafe { z.add(j * C + c).read() };
                 }
             }
             let d = self.val[self.diag[i]];
-            for (c, sc) in s[..ch].iter().enumerate() {
+            for (c, sc) in s.iter().enumerate() {
                 // `s` subtracted the diagonal term too; add it back in the update.
                 // SAFETY: i < n by the caller's contract.
                 unsafe {
-                    let zi = z.add(i * ch + c);
+                    let zi = z.add(i * C + c);
                     zi.write(zi.read() + sc / d);
                 }
             }
@@ -202,45 +235,69 @@ impl SymCsr {
     }
 
     /// The Galerkin product Pᵀ A P, row by row over the coarse unknowns.
-    pub fn galerkin(&self, p: &Transfer) -> Result<SymCsr, SolveError> {
+    ///
+    /// `at[k]` places coarse unknown k on a lattice. A lattice row couples
+    /// only to the 3×3 lattice nodes around it (a bilinear P widens a stencil
+    /// of reach one by at most one coarse step) and to unknowns off the
+    /// lattice, so it sums into nine fixed slots and a short list instead of
+    /// an accumulator over all coarse unknowns; rows off the lattice (`None`)
+    /// sum into a list that is sorted once.
+    pub fn galerkin(&self, p: &Transfer, at: &[Option<[u32; 2]>]) -> Result<SymCsr, SolveError> {
         let nc = p.coarse;
-        // One task per thread, each with one dense accumulator over the coarse
-        // unknowns; a row's sum runs in a fixed order whichever task computes it.
-        let tasks = rayon::current_num_threads().clamp(1, nc.max(1));
-        let per = nc.div_ceil(tasks);
-        let chunks: Vec<(Vec<usize>, Vec<u32>, Vec<f64>)> = (0..tasks)
+        assert_eq!(at.len(), nc, "one placement per coarse unknown");
+        let chunks: Vec<(Vec<usize>, Vec<u32>, Vec<f64>)> = (0..nc.div_ceil(CHUNK))
             .into_par_iter()
             .map(|b| {
-                let mut acc = vec![0.0f64; nc];
-                // `seen[l]` = 1 + the last row that touched column l.
-                let mut seen = vec![0u32; nc];
-                let mut cols = Vec::<u32>::new();
-                let rows = (b * per).min(nc)..((b + 1) * per).min(nc);
+                let rows = b * CHUNK..((b + 1) * CHUNK).min(nc);
                 let mut lens = Vec::with_capacity(rows.len());
                 // Bilinear coarsening keeps about nine entries a row.
                 let mut out_col = Vec::with_capacity(rows.len() * 10);
                 let mut out_val = Vec::with_capacity(rows.len() * 10);
+                let mut list: Vec<(u32, f64)> = Vec::new();
                 for k in rows {
-                    cols.clear();
+                    let before = out_col.len();
+                    list.clear();
+                    let mut slot_val = [0.0f64; 9];
+                    let mut slot_col = [u32::MAX; 9];
+                    let centre = at[k];
                     for (i, wi) in p.fine_of(k) {
                         for e in self.ptr[i]..self.ptr[i + 1] {
                             let wa = wi * self.val[e];
                             for (l, wj) in p.coarse_of(self.col[e] as usize) {
-                                if seen[l] != k as u32 + 1 {
-                                    seen[l] = k as u32 + 1;
-                                    acc[l] = 0.0;
-                                    cols.push(l as u32);
+                                let slot = match (centre, at[l]) {
+                                    (Some([x, y]), Some([lx, ly]))
+                                        if x.abs_diff(lx) <= 1 && y.abs_diff(ly) <= 1 =>
+                                    {
+                                        Some((ly + 1 - y) as usize * 3 + (lx + 1 - x) as usize)
+                                    }
+                                    _ => None,
+                                };
+                                match slot {
+                                    Some(s) => {
+                                        slot_val[s] += wa * wj;
+                                        slot_col[s] = l as u32;
+                                    }
+                                    None => list.push((l as u32, wa * wj)),
                                 }
-                                acc[l] += wa * wj;
                             }
                         }
                     }
-                    cols.sort_unstable();
-                    lens.push(cols.len());
-                    for &l in cols.iter() {
-                        out_col.push(l);
-                        out_val.push(acc[l as usize]);
+                    for s in 0..9 {
+                        if slot_col[s] != u32::MAX {
+                            list.push((slot_col[s], slot_val[s]));
+                        }
                     }
+                    // Stable, so equal columns are summed in the order they came.
+                    list.sort_by_key(|e| e.0);
+                    for &(c, v) in &list {
+                        if out_col.len() > before && out_col.last() == Some(&c) {
+                            *out_val.last_mut().expect("a value per column") += v;
+                        } else {
+                            out_col.push(c);
+                            out_val.push(v);
+                        }
+                    }
+                    lens.push(out_col.len() - before);
                 }
                 (lens, out_col, out_val)
             })
@@ -341,30 +398,40 @@ impl Transfer {
 
     /// rc = Pᵀ r.
     pub fn restrict(&self, r: &[f64], rc: &mut [f64], ch: usize) {
-        rc.par_chunks_mut(CHUNK * ch)
+        by_channels!(ch, self.restrict_n(r, rc))
+    }
+
+    fn restrict_n<const C: usize>(&self, r: &[f64], rc: &mut [f64]) {
+        rc.par_chunks_mut(CHUNK * C)
             .enumerate()
             .for_each(|(b, out)| {
-                for (k, o) in out.chunks_mut(ch).enumerate() {
-                    let mut s = [0.0f64; 4];
+                for (k, o) in out.chunks_exact_mut(C).enumerate() {
+                    let mut s = [0.0f64; C];
                     for (i, w) in self.fine_of(b * CHUNK + k) {
-                        for c in 0..ch {
-                            s[c] += w * r[i * ch + c];
+                        let ri = &r[i * C..(i + 1) * C];
+                        for c in 0..C {
+                            s[c] += w * ri[c];
                         }
                     }
-                    o.copy_from_slice(&s[..ch]);
+                    o.copy_from_slice(&s);
                 }
             });
     }
 
     /// z += P zc.
     pub fn prolong_add(&self, zc: &[f64], z: &mut [f64], ch: usize) {
-        z.par_chunks_mut(CHUNK * ch)
+        by_channels!(ch, self.prolong_add_n(zc, z))
+    }
+
+    fn prolong_add_n<const C: usize>(&self, zc: &[f64], z: &mut [f64]) {
+        z.par_chunks_mut(CHUNK * C)
             .enumerate()
             .for_each(|(b, out)| {
-                for (k, o) in out.chunks_mut(ch).enumerate() {
+                for (k, o) in out.chunks_exact_mut(C).enumerate() {
                     for (j, w) in self.coarse_of(b * CHUNK + k) {
-                        for c in 0..ch {
-                            o[c] += w * zc[j * ch + c];
+                        let zj = &zc[j * C..(j + 1) * C];
+                        for c in 0..C {
+                            o[c] += w * zj[c];
                         }
                     }
                 }
@@ -431,7 +498,7 @@ mod tests {
             ptr.push(col.len());
         }
         let p = Transfer::from_rows(4, ptr, col, w);
-        let ac = dense(&a.galerkin(&p).unwrap());
+        let ac = dense(&a.galerkin(&p, &[None; 4]).unwrap());
         let ad = dense(&a);
         let pd = |i: usize, k: usize| {
             rows[i]
