@@ -1,14 +1,16 @@
 //! The erasure energy (SPEC §4) as a sparse system over the band's unknowns.
 //!
 //! Rows come out in texel order, already sorted, so a 2048² band of two
-//! million unknowns assembles in one pass with no global sort: each row is
-//! its lattice stencil (change anchor and gradient links, at most five
-//! entries) merged with its seam entries. Only the seam terms go through a
-//! sort, after the Gauss points that share the same eight texels (all the
-//! points of one cell pair, for both the difference and the C1 term) have
-//! been summed into one dense 8×8 block.
+//! million unknowns assembles with no global sort, in parallel runs of
+//! texture rows: each row is its lattice stencil (change anchor and gradient
+//! links, at most five entries) merged with its seam entries. Only the seam
+//! terms are sorted, after the Gauss points that share the same eight texels
+//! (all the points of one cell pair, for both the difference and the C1
+//! term) have been summed into one dense 8×8 block.
 
 use std::collections::HashMap;
+
+use rayon::prelude::*;
 
 use super::grid::TexelGrid;
 use super::quadrature::QuadPoint;
@@ -49,17 +51,90 @@ pub fn assemble(
 ) -> Result<(SymCsr, Vec<f64>), SolveError> {
     let ch = channels;
     let mut rhs = vec![0.0f64; n * ch];
-    let seam_rows = seam_entries(points, unknown, input, ch, &mut rhs);
+    let ts = std::time::Instant::now();
+    let seam_rows = seam_entries(points, unknown, input, ch, n, &mut rhs);
+    tracing::debug!(
+        ms = ts.elapsed().as_millis() as u64,
+        points = points.len(),
+        entries = seam_rows.len(),
+        "seam entries"
+    );
 
+    // Unknowns are numbered in texel order, so a run of texture rows holds a
+    // run of unknowns: the rows are assembled in parallel runs and joined.
+    let (wd, ht) = (grid.width, grid.height);
+    let rows_per_task = (ROWS_PER_TASK / wd.max(1)).max(1);
+    let tasks: Vec<std::ops::Range<usize>> = (0..ht)
+        .step_by(rows_per_task)
+        .map(|y| y * wd..((y + rows_per_task).min(ht)) * wd)
+        .collect();
+    let parts: Vec<Rows> = tasks
+        .into_par_iter()
+        .map(|texels| lattice_rows(grid, input, ch, classes, unknown, w, &seam_rows, texels))
+        .collect();
+    let mut ptr = Vec::with_capacity(n + 1);
+    ptr.push(0);
+    let total: usize = parts.iter().map(|p| p.col.len()).sum();
+    let mut col = Vec::with_capacity(total);
+    let mut val = Vec::with_capacity(total);
+    for part in parts {
+        let base = col.len();
+        ptr.extend(part.ptr.iter().map(|&p| base + p));
+        col.extend(part.col);
+        val.extend(part.val);
+        for (u, r) in part.rhs {
+            for c in 0..ch {
+                rhs[u as usize * ch + c] += r[c];
+            }
+        }
+    }
+    Ok((SymCsr::from_parts(ptr, col, val)?, rhs))
+}
+
+/// Texels per parallel assembly task (whole texture rows).
+const ROWS_PER_TASK: usize = 1 << 16;
+
+/// The assembled rows of one run of texels.
+struct Rows {
+    /// Each row's end in `col`/`val`.
+    ptr: Vec<usize>,
+    col: Vec<u32>,
+    val: Vec<f64>,
+    /// Each row's right-hand side from the lattice terms.
+    rhs: Vec<(u32, [f64; 4])>,
+}
+
+/// The rows of the unknowns among `texels`: lattice stencil (change anchor
+/// and gradient links, at most five entries) merged with the seam entries.
+#[allow(clippy::too_many_arguments)]
+fn lattice_rows(
+    grid: &TexelGrid,
+    input: &[f32],
+    ch: usize,
+    classes: &TexelClasses,
+    unknown: &[u32],
+    w: &Weights,
+    seam_rows: &[(u32, u32, f64)],
+    texels: std::ops::Range<usize>,
+) -> Rows {
     let (wd, ht) = (grid.width, grid.height);
     let movable = |s: usize| classes.inside[s] || classes.free[s];
-    let mut ptr = Vec::with_capacity(n + 1);
-    let mut col = Vec::with_capacity(n * 5 + seam_rows.len());
-    let mut val = Vec::with_capacity(n * 5 + seam_rows.len());
-    ptr.push(0);
-    let mut seam = seam_rows.iter().peekable();
+    let count = texels.clone().filter(|&t| unknown[t] != u32::MAX).count();
+    let mut out = Rows {
+        ptr: Vec::with_capacity(count),
+        col: Vec::with_capacity(count * 5),
+        val: Vec::with_capacity(count * 5),
+        rhs: Vec::with_capacity(count),
+    };
+    let first = texels.clone().map(|t| unknown[t]).find(|&u| u != u32::MAX);
+    let Some(first) = first else {
+        return out;
+    };
+    let start = seam_rows.partition_point(|e| e.0 < first);
+    let mut seam = seam_rows[start..].iter().peekable();
     let mut lattice: Vec<(u32, f64)> = Vec::with_capacity(5);
-    for (t, &u) in unknown.iter().enumerate() {
+    for t in texels {
+        let u = unknown[t];
         if u == u32::MAX {
             continue;
         }
@@ -70,8 +145,9 @@ pub fn assemble(
             w.change
         };
         let mut diag = anchor;
-        for c in 0..ch {
-            rhs[u as usize * ch + c] += anchor * f64::from(input[t * ch + c]);
+        let mut rhs = [0.0f64; 4];
+        for (c, r) in rhs[..ch].iter_mut().enumerate() {
+            *r += anchor * f64::from(input[t * ch + c]);
         }
         lattice.clear();
         // Neighbours in increasing texel order (up, left, right, down), so
@@ -92,11 +168,11 @@ pub fn assemble(
             // w_grad·((p_t − p_s) − target)², target = p0_t − p0_s between inside texels.
             diag += w.grad;
             let both_inside = classes.inside[t] && classes.inside[s];
-            for c in 0..ch {
+            for (c, r) in rhs[..ch].iter_mut().enumerate() {
                 let (a, b) = (f64::from(input[t * ch + c]), f64::from(input[s * ch + c]));
                 let target = if both_inside { a - b } else { 0.0 };
                 let held = if unknown[s] == u32::MAX { b } else { 0.0 };
-                rhs[u as usize * ch + c] += w.grad * (target + held);
+                *r += w.grad * (target + held);
             }
             if unknown[s] != u32::MAX {
                 lattice.push((unknown[s], -w.grad));
@@ -107,6 +183,7 @@ pub fn assemble(
                 e.1 = diag;
             }
         }
+        out.rhs.push((u, rhs));
         // Merge with this row's seam entries (sorted by column).
         let mut li = lattice.iter().peekable();
         loop {
@@ -114,31 +191,31 @@ pub fn assemble(
             match (li.peek(), next_seam) {
                 (None, None) => break,
                 (Some(&&(lc, lv)), Some((sc, sv))) if lc == sc => {
-                    col.push(lc);
-                    val.push(lv + sv);
+                    out.col.push(lc);
+                    out.val.push(lv + sv);
                     li.next();
                     seam.next();
                 }
                 (Some(&&(lc, lv)), Some((sc, _))) if lc < sc => {
-                    col.push(lc);
-                    val.push(lv);
+                    out.col.push(lc);
+                    out.val.push(lv);
                     li.next();
                 }
                 (Some(&&(lc, lv)), None) => {
-                    col.push(lc);
-                    val.push(lv);
+                    out.col.push(lc);
+                    out.val.push(lv);
                     li.next();
                 }
                 (_, Some((sc, sv))) => {
-                    col.push(sc);
-                    val.push(sv);
+                    out.col.push(sc);
+                    out.val.push(sv);
                     seam.next();
                 }
             }
         }
-        ptr.push(col.len());
+        out.ptr.push(out.col.len());
     }
-    Ok((SymCsr::from_parts(ptr, col, val)?, rhs))
+    out
 }
 
 /// The seam and C1 terms as sorted (row, col, value) entries of both
@@ -148,6 +225,7 @@ fn seam_entries(
     unknown: &[u32],
     input: &[f32],
     ch: usize,
+    n: usize,
     rhs: &mut [f64],
 ) -> Vec<(u32, u32, f64)> {
     let mut blocks: Vec<Block> = Vec::new();
@@ -181,14 +259,18 @@ fn seam_entries(
             }
         }
         let key = free.map(|f| f.0);
-        let b = *index.entry(key).or_insert_with(|| {
-            blocks.push(Block {
-                unknowns: key,
-                len: nfree,
-                a: [[0.0; 8]; 8],
-            });
-            blocks.len() - 1
-        });
+        // The points of one cell pair come one after another: try the last block first.
+        let b = match blocks.last() {
+            Some(last) if last.unknowns == key => blocks.len() - 1,
+            _ => *index.entry(key).or_insert_with(|| {
+                blocks.push(Block {
+                    unknowns: key,
+                    len: nfree,
+                    a: [[0.0; 8]; 8],
+                });
+                blocks.len() - 1
+            }),
+        };
         let a = &mut blocks[b].a;
         for k in 0..nfree {
             for l in 0..nfree {
@@ -204,8 +286,25 @@ fn seam_entries(
             }
         }
     }
-    // Stable, so equal entries are summed in the order the points came.
-    entries.sort_by_key(|e| (e.0, e.1));
+    // Stable (a counting sort by row, then each short row by column), so
+    // equal entries are summed in the order the points came.
+    let mut start = vec![0usize; n + 1];
+    for e in &entries {
+        start[e.0 as usize + 1] += 1;
+    }
+    for i in 0..n {
+        start[i + 1] += start[i];
+    }
+    let mut by_row = vec![(0u32, 0u32, 0.0f64); entries.len()];
+    let mut next = start.clone();
+    for e in entries {
+        by_row[next[e.0 as usize]] = e;
+        next[e.0 as usize] += 1;
+    }
+    for i in 0..n {
+        by_row[start[i]..start[i + 1]].sort_by_key(|e| e.1);
+    }
+    let entries = by_row;
     let mut merged: Vec<(u32, u32, f64)> = Vec::with_capacity(entries.len() / 2);
     for e in entries {
         match merged.last_mut() {
