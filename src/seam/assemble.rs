@@ -54,54 +54,124 @@ pub fn assemble(
     let ts = std::time::Instant::now();
     let seam_rows = seam_entries(points, unknown, input, ch, n, &mut rhs);
     tracing::debug!(
-        ms = ts.elapsed().as_millis() as u64,
+        elapsed_ms = ts.elapsed().as_millis() as u64,
         points = points.len(),
         entries = seam_rows.len(),
         "seam entries"
     );
 
     // Unknowns are numbered in texel order, so a run of texture rows holds a
-    // run of unknowns: the rows are assembled in parallel runs and joined.
+    // run of unknowns. The runs are assembled in parallel twice: once to
+    // count each row's entries, then straight into their slices of the
+    // arrays (no part is copied, so the peak holds the matrix once).
     let (wd, ht) = (grid.width, grid.height);
     let rows_per_task = (ROWS_PER_TASK / wd.max(1)).max(1);
     let tasks: Vec<std::ops::Range<usize>> = (0..ht)
         .step_by(rows_per_task)
         .map(|y| y * wd..((y + rows_per_task).min(ht)) * wd)
         .collect();
-    let parts: Vec<Rows> = tasks
-        .into_par_iter()
-        .map(|texels| lattice_rows(grid, input, ch, classes, unknown, w, &seam_rows, texels))
+    let rows = |texels: std::ops::Range<usize>, sink: &mut dyn Sink| {
+        lattice_rows(
+            grid, input, ch, classes, unknown, w, &seam_rows, texels, sink,
+        )
+    };
+    let lens: Vec<Vec<usize>> = tasks
+        .par_iter()
+        .map(|texels| {
+            let mut count = Count::default();
+            rows(texels.clone(), &mut count);
+            count.lens
+        })
         .collect();
     let mut ptr = Vec::with_capacity(n + 1);
     ptr.push(0);
-    let total: usize = parts.iter().map(|p| p.col.len()).sum();
-    let mut col = Vec::with_capacity(total);
-    let mut val = Vec::with_capacity(total);
-    for part in parts {
-        let base = col.len();
-        ptr.extend(part.ptr.iter().map(|&p| base + p));
-        col.extend(part.col);
-        val.extend(part.val);
-        for (u, r) in part.rhs {
-            for c in 0..ch {
-                rhs[u as usize * ch + c] += r[c];
-            }
-        }
+    for &l in lens.iter().flatten() {
+        ptr.push(ptr.last().copied().unwrap_or(0) + l);
     }
+    let total = ptr.last().copied().unwrap_or(0);
+    let mut col = vec![0u32; total];
+    let mut val = vec![0.0f64; total];
+    let mut jobs = Vec::with_capacity(tasks.len());
+    let (mut col_rest, mut val_rest, mut rhs_rest) = (&mut col[..], &mut val[..], &mut rhs[..]);
+    for (texels, lens) in tasks.into_iter().zip(&lens) {
+        let entries: usize = lens.iter().sum();
+        let (c, cr) = std::mem::take(&mut col_rest).split_at_mut(entries);
+        let (v, vr) = std::mem::take(&mut val_rest).split_at_mut(entries);
+        let (r, rr) = std::mem::take(&mut rhs_rest).split_at_mut(lens.len() * ch);
+        (col_rest, val_rest, rhs_rest) = (cr, vr, rr);
+        jobs.push((texels, Fill::new(c, v, r, ch)));
+    }
+    jobs.into_par_iter()
+        .for_each(|(texels, mut fill)| rows(texels, &mut fill));
     Ok((SymCsr::from_parts(ptr, col, val)?, rhs))
 }
 
 /// Texels per parallel assembly task (whole texture rows).
 const ROWS_PER_TASK: usize = 1 << 16;
 
-/// The assembled rows of one run of texels.
-struct Rows {
-    /// Each row's end in `col`/`val`.
-    ptr: Vec<usize>,
-    col: Vec<u32>,
-    val: Vec<f64>,
-    /// Each row's right-hand side from the lattice terms.
-    rhs: Vec<(u32, [f64; 4])>,
+/// Where [`lattice_rows`] puts what it assembles.
+trait Sink {
+    fn entry(&mut self, col: u32, val: f64);
+    /// Ends a row, with its right-hand side from the lattice terms.
+    fn end_row(&mut self, rhs: &[f64; 4]);
+}
+
+/// Counts each row's entries.
+#[derive(Default)]
+struct Count {
+    lens: Vec<usize>,
+    current: usize,
+}
+
+impl Sink for Count {
+    fn entry(&mut self, _: u32, _: f64) {
+        self.current += 1;
+    }
+    fn end_row(&mut self, _: &[f64; 4]) {
+        self.lens.push(std::mem::take(&mut self.current));
+    }
+}
+
+/// Writes the rows of one run into their slices of the matrix and adds
+/// their right-hand sides to theirs.
+struct Fill<'a> {
+    col: &'a mut [u32],
+    val: &'a mut [f64],
+    rhs: &'a mut [f64],
+    ch: usize,
+    at: usize,
+    row: usize,
+}
+
+impl<'a> Fill<'a> {
+    fn new(col: &'a mut [u32], val: &'a mut [f64], rhs: &'a mut [f64], ch: usize) -> Self {
+        Fill {
+            col,
+            val,
+            rhs,
+            ch,
+            at: 0,
+            row: 0,
+        }
+    }
+}
+
+impl Sink for Fill<'_> {
+    fn entry(&mut self, col: u32, val: f64) {
+        self.col[self.at] = col;
+        self.val[self.at] = val;
+        self.at += 1;
+    }
+    fn end_row(&mut self, rhs: &[f64; 4]) {
+        let ch = self.ch;
+        for (b, r) in self.rhs[self.row * ch..(self.row + 1) * ch]
+            .iter_mut()
+            .zip(rhs)
+        {
+            *b += r;
+        }
+        self.row += 1;
+    }
 }
 
 /// The rows of the unknowns among `texels`: lattice stencil (change anchor
@@ -116,19 +186,13 @@ fn lattice_rows(
     w: &Weights,
     seam_rows: &[(u32, u32, f64)],
     texels: std::ops::Range<usize>,
-) -> Rows {
+    out: &mut dyn Sink,
+) {
     let (wd, ht) = (grid.width, grid.height);
     let movable = |s: usize| classes.inside[s] || classes.free[s];
-    let count = texels.clone().filter(|&t| unknown[t] != u32::MAX).count();
-    let mut out = Rows {
-        ptr: Vec::with_capacity(count),
-        col: Vec::with_capacity(count * 5),
-        val: Vec::with_capacity(count * 5),
-        rhs: Vec::with_capacity(count),
-    };
     let first = texels.clone().map(|t| unknown[t]).find(|&u| u != u32::MAX);
     let Some(first) = first else {
-        return out;
+        return;
     };
     let start = seam_rows.partition_point(|e| e.0 < first);
     let mut seam = seam_rows[start..].iter().peekable();
@@ -183,7 +247,6 @@ fn lattice_rows(
                 e.1 = diag;
             }
         }
-        out.rhs.push((u, rhs));
         // Merge with this row's seam entries (sorted by column).
         let mut li = lattice.iter().peekable();
         loop {
@@ -191,31 +254,26 @@ fn lattice_rows(
             match (li.peek(), next_seam) {
                 (None, None) => break,
                 (Some(&&(lc, lv)), Some((sc, sv))) if lc == sc => {
-                    out.col.push(lc);
-                    out.val.push(lv + sv);
+                    out.entry(lc, lv + sv);
                     li.next();
                     seam.next();
                 }
                 (Some(&&(lc, lv)), Some((sc, _))) if lc < sc => {
-                    out.col.push(lc);
-                    out.val.push(lv);
+                    out.entry(lc, lv);
                     li.next();
                 }
                 (Some(&&(lc, lv)), None) => {
-                    out.col.push(lc);
-                    out.val.push(lv);
+                    out.entry(lc, lv);
                     li.next();
                 }
                 (_, Some((sc, sv))) => {
-                    out.col.push(sc);
-                    out.val.push(sv);
+                    out.entry(sc, sv);
                     seam.next();
                 }
             }
         }
-        out.ptr.push(out.col.len());
+        out.end_row(&rhs);
     }
-    out
 }
 
 /// The seam and C1 terms as sorted (row, col, value) entries of both

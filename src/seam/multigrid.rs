@@ -660,7 +660,7 @@ mod tests {
             .zip(&x_true)
             .map(|(a, b)| (a - b).abs())
             .fold(0.0, f64::max);
-        // CG stops once a step moves no unknown by 1e-4 of a level.
+        // CG stops once its estimated remaining error is below 1e-4 of a level.
         assert!(worst < 1e-5, "{worst}");
     }
 }
