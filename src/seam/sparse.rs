@@ -245,10 +245,15 @@ impl SymCsr {
     pub fn galerkin(&self, p: &Transfer, at: &[Option<[u32; 2]>]) -> Result<SymCsr, SolveError> {
         let nc = p.coarse;
         assert_eq!(at.len(), nc, "one placement per coarse unknown");
-        let chunks: Vec<(Vec<usize>, Vec<u32>, Vec<f64>)> = (0..nc.div_ceil(CHUNK))
+        // One task per thread: a few large parts are handed back to the
+        // system once joined, where many small ones would stay in the heap.
+        // A row's sum runs in a fixed order whichever task computes it.
+        let tasks = rayon::current_num_threads().clamp(1, nc.max(1));
+        let per = nc.div_ceil(tasks);
+        let chunks: Vec<(Vec<usize>, Vec<u32>, Vec<f64>)> = (0..tasks)
             .into_par_iter()
             .map(|b| {
-                let rows = b * CHUNK..((b + 1) * CHUNK).min(nc);
+                let rows = (b * per).min(nc)..((b + 1) * per).min(nc);
                 let mut lens = Vec::with_capacity(rows.len());
                 // Bilinear coarsening keeps about nine entries a row.
                 let mut out_col = Vec::with_capacity(rows.len() * 10);
