@@ -100,13 +100,7 @@ impl Hierarchy {
             let tl = std::time::Instant::now();
             let (transfer, coarse) = coarsen(&nodes);
             let coarsen_ms = tl.elapsed().as_millis() as u64;
-            let at: Vec<Option<[u32; 2]>> = coarse
-                .iter()
-                .map(|n| match *n {
-                    Node::Lattice(x, y) => Some([x, y]),
-                    Node::Exact => None,
-                })
-                .collect();
+            let at = placements(&coarse);
             let tl = std::time::Instant::now();
             let ac = ops[ops.len() - 1].galerkin(&transfer, &at)?;
             tracing::debug!(
@@ -381,6 +375,17 @@ struct Work {
     coarse_z: Vec<f64>,
 }
 
+/// Where each node sits on its lattice, for [`SymCsr::galerkin`].
+fn placements(nodes: &[Node]) -> Vec<Option<[u32; 2]>> {
+    nodes
+        .iter()
+        .map(|n| match *n {
+            Node::Lattice(x, y) => Some([x, y]),
+            Node::Exact => None,
+        })
+        .collect()
+}
+
 /// One coarsening step: exact nodes map to themselves, lattice nodes
 /// interpolate bilinearly from the lattice of twice their spacing.
 fn coarsen(nodes: &[Node]) -> (Transfer, Vec<Node>) {
@@ -628,13 +633,7 @@ mod tests {
     fn lattice_galerkin_equals_the_general_triple_product() {
         let (a, nodes) = problem(9, 7);
         let (p, coarse) = coarsen(&nodes);
-        let at: Vec<Option<[u32; 2]>> = coarse
-            .iter()
-            .map(|n| match *n {
-                Node::Lattice(x, y) => Some([x, y]),
-                Node::Exact => None,
-            })
-            .collect();
+        let at = placements(&coarse);
         let fast = a.galerkin(&p, &at).unwrap();
         let general = a.galerkin(&p, &vec![None; coarse.len()]).unwrap();
         assert_eq!(fast.ptr, general.ptr);
