@@ -26,7 +26,7 @@
 
 use rayon::prelude::*;
 
-use super::sparse::{SymCsr, Transfer};
+use super::sparse::{by_channels, SymCsr, Transfer};
 use super::system::{Cholesky, SolveError};
 
 /// CG stops when the error it leaves is estimated below this (in [0,1]
@@ -129,7 +129,10 @@ impl Hierarchy {
         // positive definite; CG still converges to the unshifted fine solution.
         let mut last = ops.pop().unwrap_or_default();
         last.shift_diagonal(COARSE_SHIFT, |i| nodes[i] != Node::Exact);
-        tracing::debug!(ms = tb.elapsed().as_millis() as u64, "exact block factored");
+        tracing::debug!(
+            elapsed_ms = tb.elapsed().as_millis() as u64,
+            "exact block factored"
+        );
         let coarsest = Cholesky::new(&last.to_faer())?;
         tracing::debug!(
             levels = ops.len() + 1,
@@ -476,13 +479,7 @@ pub fn solve(
     ch: usize,
     x0: Vec<f64>,
 ) -> Result<(Vec<f64>, usize), SolveError> {
-    match ch {
-        1 => solve_n::<1>(m, b, x0),
-        2 => solve_n::<2>(m, b, x0),
-        3 => solve_n::<3>(m, b, x0),
-        4 => solve_n::<4>(m, b, x0),
-        c => panic!("{c} channels: at most 4 are supported"),
-    }
+    by_channels!(ch, solve_n(m, b, x0))
 }
 
 fn solve_n<const C: usize>(

@@ -23,7 +23,17 @@ macro_rules! by_channels {
             c => panic!("{c} channels: at most 4 are supported"),
         }
     };
+    ($ch:expr, $f:ident ( $($arg:expr),* )) => {
+        match $ch {
+            1 => $f::<1>($($arg),*),
+            2 => $f::<2>($($arg),*),
+            3 => $f::<3>($($arg),*),
+            4 => $f::<4>($($arg),*),
+            c => panic!("{c} channels: at most 4 are supported"),
+        }
+    };
 }
+pub(super) use by_channels;
 
 /// Rows per parallel task: large enough to amortise scheduling, small enough
 /// to balance two to a few dozen threads.
