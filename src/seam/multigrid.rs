@@ -7,8 +7,9 @@
 //! follow such a tie (a coarse hat function on one side alone would carry the
 //! full seam penalty). So every level keeps the texels near the seams as
 //! unknowns of their own ("exact" nodes, identity in the prolongation), and
-//! coarsens only the rest, bilinearly by two per level. The coarsest level,
-//! the exact nodes plus a small lattice, is factored directly.
+//! coarsens only the rest, bilinearly by two per level. Coarsening stops
+//! once the lattice part is no larger than the exact part, and that level,
+//! the exact nodes plus a lattice of their size, is factored directly.
 //!
 //! The smoother follows the same split. Gauss–Seidel relaxes the lattice
 //! rows; the exact rows, whose stiff ties a pointwise sweep cannot follow, are
@@ -42,7 +43,8 @@ const MAX_RATIO: f64 = 0.5;
 /// Or when every channel's residual falls below this fraction of its right-hand side's.
 const RELATIVE_TOLERANCE: f64 = 1e-10;
 const MAX_ITERATIONS: usize = 100;
-/// Stop coarsening when the lattice part of a level has at most this many nodes.
+/// Stop coarsening when the lattice part of a level has at most this many
+/// nodes, or at most as many as the exact part (see [`Hierarchy::new`]).
 const COARSEST_LATTICE: usize = 2048;
 /// Relative diagonal shift of the coarsest lattice nodes (see [`Hierarchy::new`]).
 const COARSE_SHIFT: f64 = 1e-6;
@@ -94,7 +96,12 @@ impl Hierarchy {
                     .collect::<Vec<u32>>(),
             );
             let lattice = nodes.iter().filter(|n| **n != Node::Exact).count();
-            if lattice <= COARSEST_LATTICE {
+            // Every level carries all the exact nodes, and the coarsest factor
+            // must take them anyway; once the lattice is no larger than they
+            // are, factoring it too costs little, while coarser lattices
+            // approximate the ties near the seams ever worse. Stopping there
+            // takes Fox from 8 CG iterations to 5 and blub (global) from 8 to 3.
+            if lattice <= COARSEST_LATTICE.max(nodes.len() - lattice) {
                 break;
             }
             let tl = std::time::Instant::now();
