@@ -336,38 +336,39 @@ fn seam_entries(
             }
         }
     }
-    let mut entries: Vec<(u32, u32, f64)> = Vec::with_capacity(blocks.len() * 64);
+    // A counting sort by row straight from the blocks, stable (each short
+    // row is then sorted by column, stably), so equal entries are summed in
+    // the order the points came.
+    let mut start = vec![0u32; n + 1];
     for b in &blocks {
-        for k in 0..b.len {
-            for l in 0..b.len {
-                entries.push((b.unknowns[k], b.unknowns[l], b.a[k][l]));
-            }
+        for &u in &b.unknowns[..b.len] {
+            start[u as usize + 1] += b.len as u32;
         }
-    }
-    // Stable (a counting sort by row, then each short row by column), so
-    // equal entries are summed in the order the points came.
-    let mut start = vec![0usize; n + 1];
-    for e in &entries {
-        start[e.0 as usize + 1] += 1;
     }
     for i in 0..n {
         start[i + 1] += start[i];
     }
-    let mut by_row = vec![(0u32, 0u32, 0.0f64); entries.len()];
+    let mut by_row = vec![(0u32, 0.0f64); start[n] as usize];
     let mut next = start.clone();
-    for e in entries {
-        by_row[next[e.0 as usize]] = e;
-        next[e.0 as usize] += 1;
+    for b in &blocks {
+        for (k, &u) in b.unknowns[..b.len].iter().enumerate() {
+            let at = &mut next[u as usize];
+            for (l, &v) in b.unknowns[..b.len].iter().enumerate() {
+                by_row[*at as usize] = (v, b.a[k][l]);
+                *at += 1;
+            }
+        }
     }
+    drop((next, blocks));
+    let mut merged: Vec<(u32, u32, f64)> = Vec::with_capacity(by_row.len() / 2);
     for i in 0..n {
-        by_row[start[i]..start[i + 1]].sort_by_key(|e| e.1);
-    }
-    let entries = by_row;
-    let mut merged: Vec<(u32, u32, f64)> = Vec::with_capacity(entries.len() / 2);
-    for e in entries {
-        match merged.last_mut() {
-            Some(m) if m.0 == e.0 && m.1 == e.1 => m.2 += e.2,
-            _ => merged.push(e),
+        let row = &mut by_row[start[i] as usize..start[i + 1] as usize];
+        row.sort_by_key(|e| e.0);
+        for &(c, v) in row.iter() {
+            match merged.last_mut() {
+                Some(m) if m.0 == i as u32 && m.1 == c => m.2 += v,
+                _ => merged.push((i as u32, c, v)),
+            }
         }
     }
     merged

@@ -24,6 +24,8 @@
 //! the band widens around that texel by the decay steps still needed, and the
 //! system is solved again from the previous solution.
 
+use rayon::prelude::*;
+
 use super::assemble::{assemble, Weights};
 use super::grid::TexelGrid;
 use super::multigrid::{self, Hierarchy, Node};
@@ -480,13 +482,14 @@ fn solve_band(
         x
     };
     let mut out = input.to_vec();
-    for (t, &u) in unknown.iter().enumerate() {
-        if u != u32::MAX {
-            for c in 0..ch {
-                out[t * ch + c] = x[u as usize * ch + c] as f32;
+    out.par_chunks_mut(ch)
+        .zip(unknown.par_iter())
+        .filter(|(_, &u)| u != u32::MAX)
+        .for_each(|(o, &u)| {
+            for (c, v) in o.iter_mut().enumerate() {
+                *v = x[u as usize * ch + c] as f32;
             }
-        }
-    }
+        });
     Ok((out, n))
 }
 

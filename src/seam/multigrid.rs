@@ -281,7 +281,7 @@ impl BlockPart {
             }
             rows[part_of_root[root] as usize].push(i);
         }
-        rows.into_iter()
+        rows.into_par_iter()
             .filter(|r| !r.is_empty())
             .map(|rows| {
                 let factor = Cholesky::new(&block.submatrix(&rows)?.to_faer())?;
