@@ -413,7 +413,7 @@ fn coarsen(nodes: &[Node]) -> (Transfer, Vec<Node>) {
     let mut row_w = Vec::with_capacity(nodes.len() * 2);
     row_ptr.push(0);
     // Along one axis: an even coordinate sits on a coarse node, an odd one halfway.
-    let parents = |x: u32| -> [(u32, f64); 2] {
+    let parents = |x: u32| -> [(u32, f32); 2] {
         if x.is_multiple_of(2) {
             [(x / 2, 1.0), (0, 0.0)]
         } else {
