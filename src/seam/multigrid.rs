@@ -87,21 +87,20 @@ impl Hierarchy {
             let tl = std::time::Instant::now();
             sweeps.push(Sweep::new(&ops[ops.len() - 1], &nodes));
             let sweep_ms = tl.elapsed().as_millis() as u64;
-            exact.push(
-                nodes
-                    .iter()
-                    .enumerate()
-                    .filter(|(_, n)| **n == Node::Exact)
-                    .map(|(i, _)| i as u32)
-                    .collect::<Vec<u32>>(),
-            );
-            let lattice = nodes.iter().filter(|n| **n != Node::Exact).count();
+            let exact_rows: Vec<u32> = nodes
+                .iter()
+                .enumerate()
+                .filter(|(_, n)| **n == Node::Exact)
+                .map(|(i, _)| i as u32)
+                .collect();
+            let (exact_count, lattice) = (exact_rows.len(), nodes.len() - exact_rows.len());
+            exact.push(exact_rows);
             // Every level carries all the exact nodes, and the coarsest factor
             // must take them anyway; once the lattice is no larger than they
             // are, factoring it too costs little, while coarser lattices
             // approximate the ties near the seams ever worse. Stopping there
             // takes Fox from 8 CG iterations to 5 and blub (global) from 8 to 3.
-            if lattice <= COARSEST_LATTICE.max(nodes.len() - lattice) {
+            if lattice <= COARSEST_LATTICE.max(exact_count) {
                 break;
             }
             let tl = std::time::Instant::now();
