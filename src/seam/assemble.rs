@@ -2,11 +2,12 @@
 //!
 //! Rows come out in texel order, already sorted, so a 2048² band of two
 //! million unknowns assembles with no global sort, in parallel runs of
-//! texture rows: each row is its lattice stencil (change anchor and gradient
-//! links, at most five entries) merged with its seam entries. Only the seam
-//! terms are sorted, after the Gauss points that share the same eight texels
-//! (all the points of one cell pair, for both the difference and the C1
-//! term) have been summed into one dense 8×8 block.
+//! texture rows. A row away from the seams is its lattice stencil (change
+//! anchor and gradient links), kept implicit ([`StencilMatrix`]); a row with
+//! seam entries is that stencil merged with them, stored in full. Only the
+//! seam terms are sorted, after the Gauss points that share the same eight
+//! texels (all the points of one cell pair, for both the difference and the
+//! C1 term) have been summed into one dense 8×8 block.
 
 use std::collections::HashMap;
 
@@ -14,7 +15,7 @@ use rayon::prelude::*;
 
 use super::grid::TexelGrid;
 use super::quadrature::QuadPoint;
-use super::sparse::SymCsr;
+use super::stencil::{StencilMatrix, StencilRows, StoredRows, LEFT, NONE, RIGHT};
 use super::system::SolveError;
 use super::texels::TexelClasses;
 
@@ -48,7 +49,7 @@ pub fn assemble(
     unknown: &[u32],
     n: usize,
     w: &Weights,
-) -> Result<(SymCsr, Vec<f64>), SolveError> {
+) -> Result<(StencilMatrix, Vec<f64>), SolveError> {
     let ch = channels;
     let mut rhs = vec![0.0f64; n * ch];
     let ts = std::time::Instant::now();
@@ -61,121 +62,90 @@ pub fn assemble(
     );
 
     // Unknowns are numbered in texel order, so a run of texture rows holds a
-    // run of unknowns. The runs are assembled in parallel twice: once to
-    // count each row's entries, then straight into their slices of the
-    // arrays (no part is copied, so the peak holds the matrix once).
+    // run of unknowns, and the runs fill their slices of the stencil arrays
+    // in parallel; the few stored rows come back per run, in order.
     let (wd, ht) = (grid.width, grid.height);
     let rows_per_task = (ROWS_PER_TASK / wd.max(1)).max(1);
     let tasks: Vec<std::ops::Range<usize>> = (0..ht)
         .step_by(rows_per_task)
         .map(|y| y * wd..((y + rows_per_task).min(ht)) * wd)
         .collect();
-    let rows = |texels: std::ops::Range<usize>, sink: &mut dyn Sink| {
-        lattice_rows(
-            grid, input, ch, classes, unknown, w, &seam_rows, texels, sink,
-        )
-    };
-    let lens: Vec<Vec<usize>> = tasks
+    let counts: Vec<usize> = tasks
         .par_iter()
         .map(|texels| {
-            let mut count = Count::default();
-            rows(texels.clone(), &mut count);
-            count.lens
+            unknown[texels.clone()]
+                .iter()
+                .filter(|&&u| u != NONE)
+                .count()
         })
         .collect();
-    let mut ptr = Vec::with_capacity(n + 1);
-    ptr.push(0);
-    for &l in lens.iter().flatten() {
-        ptr.push(ptr.last().copied().unwrap_or(0) + l);
-    }
-    let total = ptr.last().copied().unwrap_or(0);
-    let mut col = vec![0u32; total];
-    let mut val = vec![0.0f64; total];
+    let mut stencil = StencilRows {
+        diag: vec![0.0; n],
+        up: vec![NONE; n],
+        down: vec![NONE; n],
+        sides: vec![0; n],
+    };
     let mut jobs = Vec::with_capacity(tasks.len());
-    let (mut col_rest, mut val_rest, mut rhs_rest) = (&mut col[..], &mut val[..], &mut rhs[..]);
-    for (texels, lens) in tasks.into_iter().zip(&lens) {
-        let entries: usize = lens.iter().sum();
-        let (c, cr) = std::mem::take(&mut col_rest).split_at_mut(entries);
-        let (v, vr) = std::mem::take(&mut val_rest).split_at_mut(entries);
-        let (r, rr) = std::mem::take(&mut rhs_rest).split_at_mut(lens.len() * ch);
-        (col_rest, val_rest, rhs_rest) = (cr, vr, rr);
-        jobs.push((texels, Fill::new(c, v, r, ch)));
+    {
+        let mut diag = &mut stencil.diag[..];
+        let mut up = &mut stencil.up[..];
+        let mut down = &mut stencil.down[..];
+        let mut sides = &mut stencil.sides[..];
+        let mut b = &mut rhs[..];
+        for (texels, &count) in tasks.into_iter().zip(&counts) {
+            let (d, dr) = std::mem::take(&mut diag).split_at_mut(count);
+            let (u, ur) = std::mem::take(&mut up).split_at_mut(count);
+            let (o, or) = std::mem::take(&mut down).split_at_mut(count);
+            let (s, sr) = std::mem::take(&mut sides).split_at_mut(count);
+            let (r, rr) = std::mem::take(&mut b).split_at_mut(count * ch);
+            (diag, up, down, sides, b) = (dr, ur, or, sr, rr);
+            let out = Out {
+                diag: d,
+                up: u,
+                down: o,
+                sides: s,
+                rhs: r,
+            };
+            jobs.push((texels, out));
+        }
     }
-    jobs.into_par_iter()
-        .for_each(|(texels, mut fill)| rows(texels, &mut fill));
-    Ok((SymCsr::from_parts(ptr, col, val)?, rhs))
+    let parts: Vec<StoredRows> = jobs
+        .into_par_iter()
+        .map(|(texels, out)| {
+            lattice_rows(
+                grid, input, ch, classes, unknown, w, &seam_rows, texels, out,
+            )
+        })
+        .collect();
+    let mut stored = StoredRows {
+        ptr: vec![0],
+        ..Default::default()
+    };
+    for part in parts {
+        let base = stored.col.len();
+        stored.rows.extend(part.rows);
+        stored.ptr.extend(part.ptr.iter().skip(1).map(|p| p + base));
+        stored.col.extend(part.col);
+        stored.val.extend(part.val);
+    }
+    Ok((StencilMatrix::from_parts(-w.grad, stencil, stored)?, rhs))
 }
 
 /// Texels per parallel assembly task (whole texture rows).
 const ROWS_PER_TASK: usize = 1 << 16;
 
-/// Where [`lattice_rows`] puts what it assembles.
-trait Sink {
-    fn entry(&mut self, col: u32, val: f64);
-    /// Ends a row, with its right-hand side from the lattice terms.
-    fn end_row(&mut self, rhs: &[f64; 4]);
-}
-
-/// Counts each row's entries.
-#[derive(Default)]
-struct Count {
-    lens: Vec<usize>,
-    current: usize,
-}
-
-impl Sink for Count {
-    fn entry(&mut self, _: u32, _: f64) {
-        self.current += 1;
-    }
-    fn end_row(&mut self, _: &[f64; 4]) {
-        self.lens.push(std::mem::take(&mut self.current));
-    }
-}
-
-/// Writes the rows of one run into their slices of the matrix and adds
-/// their right-hand sides to theirs.
-struct Fill<'a> {
-    col: &'a mut [u32],
-    val: &'a mut [f64],
+/// One run's slices of the stencil arrays and of the right-hand side.
+struct Out<'a> {
+    diag: &'a mut [f64],
+    up: &'a mut [u32],
+    down: &'a mut [u32],
+    sides: &'a mut [u8],
     rhs: &'a mut [f64],
-    ch: usize,
-    at: usize,
-    row: usize,
-}
-
-impl<'a> Fill<'a> {
-    fn new(col: &'a mut [u32], val: &'a mut [f64], rhs: &'a mut [f64], ch: usize) -> Self {
-        Fill {
-            col,
-            val,
-            rhs,
-            ch,
-            at: 0,
-            row: 0,
-        }
-    }
-}
-
-impl Sink for Fill<'_> {
-    fn entry(&mut self, col: u32, val: f64) {
-        self.col[self.at] = col;
-        self.val[self.at] = val;
-        self.at += 1;
-    }
-    fn end_row(&mut self, rhs: &[f64; 4]) {
-        let ch = self.ch;
-        for (b, r) in self.rhs[self.row * ch..(self.row + 1) * ch]
-            .iter_mut()
-            .zip(rhs)
-        {
-            *b += r;
-        }
-        self.row += 1;
-    }
 }
 
 /// The rows of the unknowns among `texels`: lattice stencil (change anchor
-/// and gradient links, at most five entries) merged with the seam entries.
+/// and gradient links, at most five entries), merged with the seam entries
+/// where a row has any (those rows are returned, stored in full).
 #[allow(clippy::too_many_arguments)]
 fn lattice_rows(
     grid: &TexelGrid,
@@ -186,20 +156,25 @@ fn lattice_rows(
     w: &Weights,
     seam_rows: &[(u32, u32, f64)],
     texels: std::ops::Range<usize>,
-    out: &mut dyn Sink,
-) {
+    out: Out<'_>,
+) -> StoredRows {
     let (wd, ht) = (grid.width, grid.height);
     let movable = |s: usize| classes.inside[s] || classes.free[s];
-    let first = texels.clone().map(|t| unknown[t]).find(|&u| u != u32::MAX);
+    let mut stored = StoredRows {
+        ptr: vec![0],
+        ..Default::default()
+    };
+    let first = texels.clone().map(|t| unknown[t]).find(|&u| u != NONE);
     let Some(first) = first else {
-        return;
+        return stored;
     };
     let start = seam_rows.partition_point(|e| e.0 < first);
     let mut seam = seam_rows[start..].iter().peekable();
     let mut lattice: Vec<(u32, f64)> = Vec::with_capacity(5);
+    let mut k = 0;
     for t in texels {
         let u = unknown[t];
-        if u == u32::MAX {
+        if u == NONE {
             continue;
         }
         let (x, y) = (t % wd, t / wd);
@@ -209,11 +184,13 @@ fn lattice_rows(
             w.change
         };
         let mut diag = anchor;
-        let mut rhs = [0.0f64; 4];
-        for (c, r) in rhs[..ch].iter_mut().enumerate() {
+        let rhs = &mut out.rhs[k * ch..(k + 1) * ch];
+        let mut r = [0.0f64; 4];
+        for (c, r) in r[..ch].iter_mut().enumerate() {
             *r += anchor * f64::from(input[t * ch + c]);
         }
         lattice.clear();
+        let (mut up, mut down, mut sides) = (NONE, NONE, 0u8);
         // Neighbours in increasing texel order (up, left, right, down), so
         // their unknowns come out sorted; the diagonal goes between left and right.
         let neighbours = [
@@ -222,8 +199,8 @@ fn lattice_rows(
             (x + 1 < wd).then(|| t + 1),
             (y + 1 < ht).then(|| t + wd),
         ];
-        for (k, s) in neighbours.into_iter().enumerate() {
-            if k == 2 {
+        for (side, s) in neighbours.into_iter().enumerate() {
+            if side == 2 {
                 lattice.push((u, 0.0));
             }
             let Some(s) = s.filter(|&s| movable(s)) else {
@@ -232,15 +209,31 @@ fn lattice_rows(
             // w_grad·((p_t − p_s) − target)², target = p0_t − p0_s between inside texels.
             diag += w.grad;
             let both_inside = classes.inside[t] && classes.inside[s];
-            for (c, r) in rhs[..ch].iter_mut().enumerate() {
+            for (c, r) in r[..ch].iter_mut().enumerate() {
                 let (a, b) = (f64::from(input[t * ch + c]), f64::from(input[s * ch + c]));
                 let target = if both_inside { a - b } else { 0.0 };
-                let held = if unknown[s] == u32::MAX { b } else { 0.0 };
+                let held = if unknown[s] == NONE { b } else { 0.0 };
                 *r += w.grad * (target + held);
             }
-            if unknown[s] != u32::MAX {
+            if unknown[s] != NONE {
                 lattice.push((unknown[s], -w.grad));
+                match side {
+                    0 => up = unknown[s],
+                    1 => sides |= LEFT,
+                    2 => sides |= RIGHT,
+                    _ => down = unknown[s],
+                }
             }
+        }
+        for (b, r) in rhs.iter_mut().zip(&r) {
+            *b += r;
+        }
+        out.diag[k] = diag;
+        k += 1;
+        if seam.peek().is_none_or(|e| e.0 != u) {
+            let k = k - 1;
+            (out.up[k], out.down[k], out.sides[k]) = (up, down, sides);
+            continue;
         }
         for e in lattice.iter_mut() {
             if e.0 == u {
@@ -248,32 +241,38 @@ fn lattice_rows(
             }
         }
         // Merge with this row's seam entries (sorted by column).
+        stored.rows.push(u);
         let mut li = lattice.iter().peekable();
+        let mut entry = |c: u32, v: f64| {
+            stored.col.push(c);
+            stored.val.push(v);
+        };
         loop {
             let next_seam = seam.peek().filter(|e| e.0 == u).map(|e| (e.1, e.2));
             match (li.peek(), next_seam) {
                 (None, None) => break,
                 (Some(&&(lc, lv)), Some((sc, sv))) if lc == sc => {
-                    out.entry(lc, lv + sv);
+                    entry(lc, lv + sv);
                     li.next();
                     seam.next();
                 }
                 (Some(&&(lc, lv)), Some((sc, _))) if lc < sc => {
-                    out.entry(lc, lv);
+                    entry(lc, lv);
                     li.next();
                 }
                 (Some(&&(lc, lv)), None) => {
-                    out.entry(lc, lv);
+                    entry(lc, lv);
                     li.next();
                 }
                 (_, Some((sc, sv))) => {
-                    out.entry(sc, sv);
+                    entry(sc, sv);
                     seam.next();
                 }
             }
         }
-        out.end_row(&rhs);
+        stored.ptr.push(stored.col.len());
     }
+    stored
 }
 
 /// The seam and C1 terms as sorted (row, col, value) entries of both

@@ -30,6 +30,7 @@ use super::assemble::{assemble, Weights};
 use super::grid::TexelGrid;
 use super::multigrid::{self, Hierarchy, Node};
 use super::quadrature::{seam_derivative_points, seam_difference_points, QuadPoint, Segment};
+use super::sparse::Rows;
 use super::system::{Cholesky, SolveError};
 use super::texels::TexelClasses;
 use crate::model::SeamSet;
@@ -456,7 +457,7 @@ fn solve_band(
     };
     let ch = channels;
     let x = if direct {
-        Cholesky::new(&a.to_faer())?.solve_interleaved(&b, ch)
+        Cholesky::new(&a.to_csr()?.to_faer())?.solve_interleaved(&b, ch)
     } else {
         let mut nodes = Vec::with_capacity(n);
         let mut x0 = Vec::with_capacity(n * ch);

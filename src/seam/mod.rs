@@ -9,6 +9,7 @@ pub mod metric;
 pub mod multigrid;
 pub mod quadrature;
 pub mod sparse;
+pub mod stencil;
 pub mod system;
 pub mod texels;
 

@@ -27,7 +27,8 @@
 
 use rayon::prelude::*;
 
-use super::sparse::{by_channels, SymCsr, Transfer};
+use super::sparse::{by_channels, Rows, SymCsr, Transfer};
+use super::stencil::StencilMatrix;
 use super::system::{Cholesky, SolveError};
 
 /// CG stops when the error it leaves is estimated below this (in [0,1]
@@ -61,8 +62,11 @@ pub enum Node {
 }
 
 pub struct Hierarchy {
-    /// Operators, finest first; the last one is factored.
-    ops: Vec<SymCsr>,
+    /// The finest operator, level 0.
+    fine: StencilMatrix,
+    /// The operators of levels 1 to L − 1, where L = `transfers.len()` is
+    /// the coarsest level (only its factor is kept; L = 0 factors the fine one).
+    coarse: Vec<SymCsr>,
     /// `transfers[l]` prolongs from level l+1 to level l.
     transfers: Vec<Transfer>,
     coarsest: Cholesky,
@@ -75,17 +79,20 @@ pub struct Hierarchy {
 }
 
 impl Hierarchy {
-    /// Builds the levels below `a`, whose unknowns sit at `nodes`.
-    pub fn new(a: SymCsr, nodes: Vec<Node>) -> Result<Self, SolveError> {
+    /// Builds the levels below `fine`, whose unknowns sit at `nodes`.
+    pub fn new(fine: StencilMatrix, nodes: Vec<Node>) -> Result<Self, SolveError> {
         let t = std::time::Instant::now();
-        let mut ops = vec![a];
+        let mut coarse: Vec<SymCsr> = Vec::new();
         let mut transfers = Vec::new();
         let mut nodes = nodes;
         let mut exact = Vec::new();
         let mut sweeps = Vec::new();
         loop {
             let tl = std::time::Instant::now();
-            sweeps.push(Sweep::new(&ops[ops.len() - 1], &nodes));
+            sweeps.push(match coarse.last() {
+                Some(a) => Sweep::new(a, &nodes),
+                None => Sweep::new(&fine, &nodes),
+            });
             let sweep_ms = tl.elapsed().as_millis() as u64;
             let exact_rows: Vec<u32> = nodes
                 .iter()
@@ -104,11 +111,14 @@ impl Hierarchy {
                 break;
             }
             let tl = std::time::Instant::now();
-            let (transfer, coarse) = coarsen(&nodes);
+            let (transfer, next) = coarsen(&nodes);
             let coarsen_ms = tl.elapsed().as_millis() as u64;
-            let at = placements(&coarse);
+            let at = placements(&next);
             let tl = std::time::Instant::now();
-            let ac = ops[ops.len() - 1].galerkin(&transfer, &at)?;
+            let ac = match coarse.last() {
+                Some(a) => a.galerkin(&transfer, &at)?,
+                None => fine.galerkin(&transfer, &at)?,
+            };
             tracing::debug!(
                 sweep_ms,
                 coarsen_ms,
@@ -118,40 +128,43 @@ impl Hierarchy {
                 "multigrid level"
             );
             transfers.push(transfer);
-            ops.push(ac);
-            nodes = coarse;
+            coarse.push(ac);
+            nodes = next;
         }
         let galerkin = t.elapsed();
         exact.pop();
         sweeps.pop();
         let tb = std::time::Instant::now();
         let exact_block = match exact.first() {
-            Some(rows) if !rows.is_empty() => BlockPart::split(&ops[0].submatrix(rows)?)?,
+            Some(rows) if !rows.is_empty() => BlockPart::split(&fine.submatrix(rows)?)?,
             _ => Vec::new(),
         };
-        // Hat functions of neighbouring lattice nodes can coincide on a lone
-        // texel at a ragged band edge, which leaves the Galerkin operator
-        // singular. A relative diagonal shift keeps the coarsest factor
-        // positive definite; CG still converges to the unshifted fine solution.
-        let mut last = ops.pop().unwrap_or_default();
-        last.shift_diagonal(COARSE_SHIFT, |i| nodes[i] != Node::Exact);
         tracing::debug!(
             elapsed_ms = tb.elapsed().as_millis() as u64,
             "exact block factored"
         );
+        // Hat functions of neighbouring lattice nodes can coincide on a lone
+        // texel at a ragged band edge, which leaves the Galerkin operator
+        // singular. A relative diagonal shift keeps the coarsest factor
+        // positive definite; CG still converges to the unshifted fine solution.
+        let mut last = match coarse.pop() {
+            Some(a) => a,
+            None => fine.to_csr()?,
+        };
+        last.shift_diagonal(COARSE_SHIFT, |i| nodes[i] != Node::Exact);
         let coarsest = Cholesky::new(&last.to_faer())?;
         tracing::debug!(
-            levels = ops.len() + 1,
-            fine = ops.first().map_or(last.n, |a| a.n),
+            levels = transfers.len() + 1,
+            fine = fine.n(),
             coarsest = last.n,
             coarsest_exact = nodes.iter().filter(|n| **n == Node::Exact).count(),
             galerkin_ms = galerkin.as_millis() as u64,
             factor_ms = (t.elapsed() - galerkin).as_millis() as u64,
             "multigrid hierarchy"
         );
-        ops.push(last);
         Ok(Hierarchy {
-            ops,
+            fine,
+            coarse,
             transfers,
             coarsest,
             exact,
@@ -161,7 +174,7 @@ impl Hierarchy {
     }
 
     /// z += the exact correction on level `l`'s exact nodes, the rest held.
-    fn exact_correction(&self, l: usize, r: &[f64], z: &mut [f64], ch: usize) {
+    fn exact_correction<A: Rows>(&self, a: &A, l: usize, r: &[f64], z: &mut [f64], ch: usize) {
         let Some(rows) = self.exact.get(l) else {
             return;
         };
@@ -169,7 +182,7 @@ impl Hierarchy {
             return;
         }
         let mut s = vec![0.0; rows.len() * ch];
-        self.ops[l].residual_rows(rows, r, z, &mut s, ch);
+        a.residual_rows(rows, r, z, &mut s, ch);
         let parts: Vec<Vec<f64>> = self
             .exact_block
             .par_iter()
@@ -191,29 +204,39 @@ impl Hierarchy {
         }
     }
 
-    fn fine(&self) -> &SymCsr {
-        &self.ops[0]
-    }
-
     /// z = M⁻¹ r, one V-cycle from level `l` down.
     fn vcycle(&self, l: usize, r: &[f64], z: &mut [f64], ws: &mut [Work], ch: usize) {
-        if l + 1 == self.ops.len() {
-            z.copy_from_slice(&self.coarsest.solve_interleaved(r, ch));
-            return;
+        match l {
+            _ if l == self.transfers.len() => {
+                z.copy_from_slice(&self.coarsest.solve_interleaved(r, ch));
+            }
+            0 => self.smooth(&self.fine, l, r, z, ws, ch),
+            _ => self.smooth(&self.coarse[l - 1], l, r, z, ws, ch),
         }
+    }
+
+    /// The V-cycle's work on level `l` (operator `a`) above the coarsest.
+    fn smooth<A: Rows>(
+        &self,
+        a: &A,
+        l: usize,
+        r: &[f64],
+        z: &mut [f64],
+        ws: &mut [Work],
+        ch: usize,
+    ) {
         let Some((w, rest)) = ws.split_first_mut() else {
             return;
         };
-        let a = &self.ops[l];
         let p = &self.transfers[l];
         z.fill(0.0);
         self.sweeps[l].run(a, r, z, ch, true);
-        self.exact_correction(l, r, z, ch);
+        self.exact_correction(a, l, r, z, ch);
         a.residual(r, z, &mut w.residual, ch);
         p.restrict(&w.residual, &mut w.coarse_rhs, ch);
         self.vcycle(l + 1, &w.coarse_rhs, &mut w.coarse_z, rest, ch);
         p.prolong_add(&w.coarse_z, z, ch);
-        self.exact_correction(l, r, z, ch);
+        self.exact_correction(a, l, r, z, ch);
         self.sweeps[l].run(a, r, z, ch, false);
     }
 
@@ -307,7 +330,7 @@ struct Sweep {
 }
 
 impl Sweep {
-    fn new(a: &SymCsr, nodes: &[Node]) -> Self {
+    fn new<A: Rows>(a: &A, nodes: &[Node]) -> Self {
         let stripe_of = |i: usize| match nodes[i] {
             Node::Lattice(_, y) => Some(y / STRIPE),
             Node::Exact => None,
@@ -322,14 +345,14 @@ impl Sweep {
             .unwrap_or(0) as usize;
         let mut by_stripe = vec![Vec::new(); count];
         let mut local = true;
-        for i in 0..a.n {
+        for i in 0..a.n() {
             let Some(s) = stripe_of(i) else { continue };
             by_stripe[s as usize].push(i as u32);
-            for e in a.ptr[i]..a.ptr[i + 1] {
-                if let Some(t) = stripe_of(a.col[e] as usize) {
+            a.for_each(i, |j, _| {
+                if let Some(t) = stripe_of(j) {
                     local &= s.abs_diff(t) <= 1;
                 }
-            }
+            });
         }
         if !local {
             // Not expected from bilinear coarsening; stay correct regardless.
@@ -348,8 +371,8 @@ impl Sweep {
         Sweep { stripes }
     }
 
-    fn run(&self, a: &SymCsr, r: &[f64], z: &mut [f64], ch: usize, forward: bool) {
-        assert!(ch <= 4 && z.len() >= a.n * ch && r.len() >= a.n * ch);
+    fn run<A: Rows>(&self, a: &A, r: &[f64], z: &mut [f64], ch: usize, forward: bool) {
+        assert!(ch <= 4 && z.len() >= a.n() * ch && r.len() >= a.n() * ch);
         let order = if forward { [0, 1] } else { [1, 0] };
         let shared = Shared(z.as_mut_ptr());
         for colour in order {
@@ -494,8 +517,8 @@ fn solve_n<const C: usize>(
     x0: Vec<f64>,
 ) -> Result<(Vec<f64>, usize), SolveError> {
     let ch = C;
-    let a = m.fine();
-    let n = a.n;
+    let a = &m.fine;
+    let n = a.n();
     let mut ws = m.workspace(ch);
     let mut x = x0;
     let mut r = vec![0.0; n * ch];
@@ -654,8 +677,10 @@ mod tests {
         let x_true: Vec<f64> = (0..n * 3).map(|i| (i as f64 * 0.61).sin()).collect();
         let mut b = vec![0.0; n * 3];
         a.apply(&x_true, &mut b, 3);
-        let m = Hierarchy::new(a, nodes).unwrap();
-        assert!(m.ops.len() >= 3, "{} levels", m.ops.len());
+        let fine = StencilMatrix::from_csr(&a, -1.0).unwrap();
+        assert!(fine.stored_rows() > 0 && fine.stored_rows() < 20);
+        let m = Hierarchy::new(fine, nodes).unwrap();
+        assert!(m.transfers.len() >= 2, "{} levels", m.transfers.len() + 1);
         let (x, _) = solve(&m, &b, 3, vec![0.0; n * 3]).unwrap();
         let worst = x
             .iter()

@@ -90,53 +90,6 @@ impl SymCsr {
         }
     }
 
-    /// The principal submatrix on `rows` (increasing), renumbered 0..rows.len().
-    pub fn submatrix(&self, rows: &[u32]) -> Result<SymCsr, SolveError> {
-        let mut local = vec![u32::MAX; self.n];
-        for (k, &i) in rows.iter().enumerate() {
-            local[i as usize] = k as u32;
-        }
-        let mut ptr = Vec::with_capacity(rows.len() + 1);
-        ptr.push(0);
-        let mut col = Vec::new();
-        let mut val = Vec::new();
-        for &i in rows {
-            for e in self.ptr[i as usize]..self.ptr[i as usize + 1] {
-                let k = local[self.col[e] as usize];
-                if k != u32::MAX {
-                    col.push(k);
-                    val.push(self.val[e]);
-                }
-            }
-            ptr.push(col.len());
-        }
-        SymCsr::from_parts(ptr, col, val)
-    }
-
-    /// (b − A z) on the rows `rows`, gathered in their order.
-    pub fn residual_rows(&self, rows: &[u32], b: &[f64], z: &[f64], out: &mut [f64], ch: usize) {
-        by_channels!(ch, self.residual_rows_n(rows, b, z, out))
-    }
-
-    fn residual_rows_n<const C: usize>(&self, rows: &[u32], b: &[f64], z: &[f64], out: &mut [f64]) {
-        out.par_chunks_mut(CHUNK * C)
-            .enumerate()
-            .for_each(|(blk, os)| {
-                for (k, o) in os.chunks_exact_mut(C).enumerate() {
-                    let i = rows[blk * CHUNK + k] as usize;
-                    let mut s: [f64; C] = b[i * C..(i + 1) * C].try_into().expect("C values");
-                    for e in self.ptr[i]..self.ptr[i + 1] {
-                        let (j, a) = (self.col[e] as usize, self.val[e]);
-                        let zj = &z[j * C..(j + 1) * C];
-                        for c in 0..C {
-                            s[c] -= a * zj[c];
-                        }
-                    }
-                    o.copy_from_slice(&s);
-                }
-            });
-    }
-
     /// For faer's Cholesky, which reads the lower triangle of a CSC matrix.
     pub fn to_faer(&self) -> SparseColMat<u32, f64> {
         SparseColMat::new(
@@ -150,42 +103,43 @@ impl SymCsr {
             self.val.clone(),
         )
     }
+}
+
+/// Read access to the rows of a symmetric matrix, and the kernels the
+/// multigrid solver runs on it. Rows list their entries in increasing column
+/// order, diagonal included, so every kernel sums in the same order whatever
+/// the storage.
+pub trait Rows: Sync {
+    fn n(&self) -> usize;
+    /// The diagonal entry of row `i`.
+    fn diagonal(&self, i: usize) -> f64;
+    /// Calls `f(column, value)` for each entry of row `i`, in column order.
+    fn for_each(&self, i: usize, f: impl FnMut(usize, f64));
 
     /// y = A x.
-    pub fn apply(&self, x: &[f64], y: &mut [f64], ch: usize) {
-        by_channels!(ch, self.apply_n(x, y))
+    fn apply(&self, x: &[f64], y: &mut [f64], ch: usize) {
+        by_channels!(ch, apply_n(self, x, y))
     }
 
-    fn apply_n<const C: usize>(&self, x: &[f64], y: &mut [f64]) {
-        y.par_chunks_mut(CHUNK * C).enumerate().for_each(|(b, ys)| {
-            for (k, yi) in ys.chunks_exact_mut(C).enumerate() {
-                let i = b * CHUNK + k;
-                let mut s = [0.0f64; C];
-                for e in self.ptr[i]..self.ptr[i + 1] {
-                    let (j, a) = (self.col[e] as usize, self.val[e]);
-                    let xj = &x[j * C..(j + 1) * C];
-                    for c in 0..C {
-                        s[c] += a * xj[c];
-                    }
-                }
-                yi.copy_from_slice(&s);
-            }
-        });
-    }
-
-    /// r − A x.
-    pub fn residual(&self, b: &[f64], x: &[f64], r: &mut [f64], ch: usize) {
+    /// r = b − A x.
+    fn residual(&self, b: &[f64], x: &[f64], r: &mut [f64], ch: usize) {
         self.apply(x, r, ch);
         r.par_iter_mut().zip(b).for_each(|(ri, bi)| *ri = bi - *ri);
     }
 
+    /// (b − A z) on the rows `rows`, gathered in their order.
+    fn residual_rows(&self, rows: &[u32], b: &[f64], z: &[f64], out: &mut [f64], ch: usize) {
+        by_channels!(ch, residual_rows_n(self, rows, b, z, out))
+    }
+
     /// One Gauss–Seidel sweep on A z = r in place over `rows`, forwards or
     /// backwards. A forward sweep followed by a backward one is a symmetric smoother.
-    pub fn gauss_seidel(&self, rows: &[u32], r: &[f64], z: &mut [f64], ch: usize, forward: bool) {
-        assert!(ch <= 4 && z.len() >= self.n * ch && r.len() >= self.n * ch);
-        assert!(rows.iter().all(|&i| (i as usize) < self.n));
+    fn gauss_seidel(&self, rows: &[u32], r: &[f64], z: &mut [f64], ch: usize, forward: bool) {
+        let n = self.n();
+        assert!(ch <= 4 && z.len() >= n * ch && r.len() >= n * ch);
+        assert!(rows.iter().all(|&i| (i as usize) < n));
         // SAFETY: `z` is exclusively borrowed and long enough for every row
-        // and column index (columns are checked in `from_parts`).
+        // and column index (columns are below n, as `Rows` requires).
         unsafe { self.gauss_seidel_raw(rows, r, z.as_mut_ptr(), ch, forward) }
     }
 
@@ -196,7 +150,7 @@ impl SymCsr {
     /// `z` must hold `n·ch` values; `rows` must be below `n`, `ch` at most 4,
     /// and no other thread may write an entry this sweep reads or writes, or
     /// read an entry it writes, while it runs.
-    pub unsafe fn gauss_seidel_raw(
+    unsafe fn gauss_seidel_raw(
         &self,
         rows: &[u32],
         r: &[f64],
@@ -205,43 +159,47 @@ impl SymCsr {
         forward: bool,
     ) {
         // SAFETY: the caller's contract, passed on.
-        unsafe { by_channels!(ch, self.gauss_seidel_n(rows, r, z, forward)) }
+        unsafe { by_channels!(ch, gauss_seidel_n(self, rows, r, z, forward)) }
     }
 
-    /// # Safety
-    /// As [`Self::gauss_seidel_raw`], with `C` channels.
-    unsafe fn gauss_seidel_n<const C: usize>(
-        &self,
-        rows: &[u32],
-        r: &[f64],
-        z: *mut f64,
-        forward: bool,
-    ) {
-        let sweep = |&i: &u32| {
-            let i = i as usize;
-            let mut s: [f64; C] = r[i * C..(i + 1) * C].try_into().expect("C values");
-            for e in self.ptr[i]..self.ptr[i + 1] {
-                let (j, a) = (self.col[e] as usize, self.val[e]);
-                for (c, sc) in s.iter_mut().enumerate() {
-                    // SAFETY: j < n (checked in `from_parts`), c < C: in bounds.
-                    *sc -= a * unsafe { z.add(j * C + c).read() };
-                }
-            }
-            let d = self.val[self.diag[i]];
-            for (c, sc) in s.iter().enumerate() {
-                // `s` subtracted the diagonal term too; add it back in the update.
-                // SAFETY: i < n by the caller's contract.
-                unsafe {
-                    let zi = z.add(i * C + c);
-                    zi.write(zi.read() + sc / d);
-                }
-            }
-        };
-        if forward {
-            rows.iter().for_each(sweep);
-        } else {
-            rows.iter().rev().for_each(sweep);
+    /// The principal submatrix on `rows` (increasing), renumbered 0..rows.len().
+    fn submatrix(&self, rows: &[u32]) -> Result<SymCsr, SolveError> {
+        let mut local = vec![u32::MAX; self.n()];
+        for (k, &i) in rows.iter().enumerate() {
+            local[i as usize] = k as u32;
         }
+        let mut ptr = Vec::with_capacity(rows.len() + 1);
+        ptr.push(0);
+        let mut col = Vec::new();
+        let mut val = Vec::new();
+        for &i in rows {
+            self.for_each(i as usize, |j, v| {
+                let k = local[j];
+                if k != u32::MAX {
+                    col.push(k);
+                    val.push(v);
+                }
+            });
+            ptr.push(col.len());
+        }
+        SymCsr::from_parts(ptr, col, val)
+    }
+
+    /// The whole matrix in compressed rows.
+    fn to_csr(&self) -> Result<SymCsr, SolveError> {
+        let n = self.n();
+        let mut ptr = Vec::with_capacity(n + 1);
+        ptr.push(0);
+        let mut col = Vec::new();
+        let mut val = Vec::new();
+        for i in 0..n {
+            self.for_each(i, |j, v| {
+                col.push(j as u32);
+                val.push(v);
+            });
+            ptr.push(col.len());
+        }
+        SymCsr::from_parts(ptr, col, val)
     }
 
     /// The Galerkin product Pᵀ A P, row by row over the coarse unknowns.
@@ -252,7 +210,7 @@ impl SymCsr {
     /// lattice, so it sums into nine fixed slots and a short list instead of
     /// an accumulator over all coarse unknowns; rows off the lattice (`None`)
     /// sum into a list that is sorted once.
-    pub fn galerkin(&self, p: &Transfer, at: &[Option<[u32; 2]>]) -> Result<SymCsr, SolveError> {
+    fn galerkin(&self, p: &Transfer, at: &[Option<[u32; 2]>]) -> Result<SymCsr, SolveError> {
         let nc = p.coarse;
         assert_eq!(at.len(), nc, "one placement per coarse unknown");
         // One task per thread: a few large parts are handed back to the
@@ -276,9 +234,9 @@ impl SymCsr {
                     let mut slot_col = [u32::MAX; 9];
                     let centre = at[k];
                     for (i, wi) in p.fine_of(k) {
-                        for e in self.ptr[i]..self.ptr[i + 1] {
-                            let wa = wi * self.val[e];
-                            for (l, wj) in p.coarse_of(self.col[e] as usize) {
+                        self.for_each(i, |j, aij| {
+                            let wa = wi * aij;
+                            for (l, wj) in p.coarse_of(j) {
                                 let slot = match (centre, at[l]) {
                                     (Some([x, y]), Some([lx, ly]))
                                         if x.abs_diff(lx) <= 1 && y.abs_diff(ly) <= 1 =>
@@ -295,7 +253,7 @@ impl SymCsr {
                                     None => list.push((l as u32, wa * wj)),
                                 }
                             }
-                        }
+                        });
                     }
                     for s in 0..9 {
                         if slot_col[s] != u32::MAX {
@@ -330,6 +288,98 @@ impl SymCsr {
             val.extend(v);
         }
         SymCsr::from_parts(ptr, col, val)
+    }
+}
+
+impl Rows for SymCsr {
+    fn n(&self) -> usize {
+        self.n
+    }
+
+    #[inline]
+    fn diagonal(&self, i: usize) -> f64 {
+        self.val[self.diag[i]]
+    }
+
+    #[inline]
+    fn for_each(&self, i: usize, mut f: impl FnMut(usize, f64)) {
+        for e in self.ptr[i]..self.ptr[i + 1] {
+            f(self.col[e] as usize, self.val[e]);
+        }
+    }
+}
+
+fn apply_n<const C: usize>(a: &(impl Rows + ?Sized), x: &[f64], y: &mut [f64]) {
+    y.par_chunks_mut(CHUNK * C).enumerate().for_each(|(b, ys)| {
+        for (k, yi) in ys.chunks_exact_mut(C).enumerate() {
+            let mut s = [0.0f64; C];
+            a.for_each(b * CHUNK + k, |j, v| {
+                let xj = &x[j * C..(j + 1) * C];
+                for c in 0..C {
+                    s[c] += v * xj[c];
+                }
+            });
+            yi.copy_from_slice(&s);
+        }
+    });
+}
+
+fn residual_rows_n<const C: usize>(
+    a: &(impl Rows + ?Sized),
+    rows: &[u32],
+    b: &[f64],
+    z: &[f64],
+    out: &mut [f64],
+) {
+    out.par_chunks_mut(CHUNK * C)
+        .enumerate()
+        .for_each(|(blk, os)| {
+            for (k, o) in os.chunks_exact_mut(C).enumerate() {
+                let i = rows[blk * CHUNK + k] as usize;
+                let mut s: [f64; C] = b[i * C..(i + 1) * C].try_into().expect("C values");
+                a.for_each(i, |j, v| {
+                    let zj = &z[j * C..(j + 1) * C];
+                    for c in 0..C {
+                        s[c] -= v * zj[c];
+                    }
+                });
+                o.copy_from_slice(&s);
+            }
+        });
+}
+
+/// # Safety
+/// As [`Rows::gauss_seidel_raw`], with `C` channels.
+unsafe fn gauss_seidel_n<const C: usize>(
+    a: &(impl Rows + ?Sized),
+    rows: &[u32],
+    r: &[f64],
+    z: *mut f64,
+    forward: bool,
+) {
+    let sweep = |&i: &u32| {
+        let i = i as usize;
+        let mut s: [f64; C] = r[i * C..(i + 1) * C].try_into().expect("C values");
+        a.for_each(i, |j, v| {
+            for (c, sc) in s.iter_mut().enumerate() {
+                // SAFETY: j < n (as `Rows` requires), c < C: in bounds.
+                *sc -= v * unsafe { z.add(j * C + c).read() };
+            }
+        });
+        let d = a.diagonal(i);
+        for (c, sc) in s.iter().enumerate() {
+            // `s` subtracted the diagonal term too; add it back in the update.
+            // SAFETY: i < n by the caller's contract.
+            unsafe {
+                let zi = z.add(i * C + c);
+                zi.write(zi.read() + sc / d);
+            }
+        }
+    };
+    if forward {
+        rows.iter().for_each(sweep);
+    } else {
+        rows.iter().rev().for_each(sweep);
     }
 }
 
