@@ -227,6 +227,7 @@ pub trait Rows: Sync {
                 let mut out_col = Vec::with_capacity(rows.len() * 10);
                 let mut out_val = Vec::with_capacity(rows.len() * 10);
                 let mut list: Vec<(u32, f64)> = Vec::new();
+                let mut entries: Vec<(usize, f64)> = Vec::new();
                 for k in rows {
                     let before = out_col.len();
                     list.clear();
@@ -234,7 +235,11 @@ pub trait Rows: Sync {
                     let mut slot_col = [u32::MAX; 9];
                     let centre = at[k];
                     for (i, wi) in p.fine_of(k) {
-                        self.for_each(i, |j, aij| {
+                        // Gathered first: the loop below is too large to
+                        // inline into each of a row's entries.
+                        entries.clear();
+                        self.for_each(i, |j, aij| entries.push((j, aij)));
+                        for &(j, aij) in &entries {
                             let wa = wi * aij;
                             for (l, wj) in p.coarse_of(j) {
                                 let slot = match (centre, at[l]) {
@@ -253,7 +258,7 @@ pub trait Rows: Sync {
                                     None => list.push((l as u32, wa * wj)),
                                 }
                             }
-                        });
+                        }
                     }
                     for s in 0..9 {
                         if slot_col[s] != u32::MAX {
@@ -360,20 +365,19 @@ unsafe fn gauss_seidel_n<const C: usize>(
     let sweep = |&i: &u32| {
         let i = i as usize;
         let mut s: [f64; C] = r[i * C..(i + 1) * C].try_into().expect("C values");
+        // The reciprocal does not wait on the sweep, the division would.
+        let inv = 1.0 / a.diagonal(i);
         a.for_each(i, |j, v| {
-            for (c, sc) in s.iter_mut().enumerate() {
-                // SAFETY: j < n (as `Rows` requires), c < C: in bounds.
-                *sc -= v * unsafe { z.add(j * C + c).read() };
+            if j != i {
+                for (c, sc) in s.iter_mut().enumerate() {
+                    // SAFETY: j < n (as `Rows` requires), c < C: in bounds.
+                    *sc -= v * unsafe { z.add(j * C + c).read() };
+                }
             }
         });
-        let d = a.diagonal(i);
         for (c, sc) in s.iter().enumerate() {
-            // `s` subtracted the diagonal term too; add it back in the update.
             // SAFETY: i < n by the caller's contract.
-            unsafe {
-                let zi = z.add(i * C + c);
-                zi.write(zi.read() + sc / d);
-            }
+            unsafe { z.add(i * C + c).write(sc * inv) };
         }
     };
     if forward {
