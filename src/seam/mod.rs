@@ -12,6 +12,7 @@ pub mod sparse;
 pub mod stencil;
 pub mod system;
 pub mod texels;
+pub mod transfer;
 
 pub use grid::TexelGrid;
 pub use metric::{colour_channels, psnr, SeamMetric};

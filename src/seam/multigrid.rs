@@ -27,9 +27,10 @@
 
 use rayon::prelude::*;
 
-use super::sparse::{by_channels, Rows, SymCsr, Transfer};
+use super::sparse::{by_channels, Rows, SymCsr};
 use super::stencil::StencilMatrix;
 use super::system::{Cholesky, SolveError};
+use super::transfer::Transfer;
 
 /// CG stops when the error it leaves is estimated below this (in [0,1]
 /// units: 1e-4 of an 8-bit level, a tenth of the band's tolerance). The
@@ -111,13 +112,12 @@ impl Hierarchy {
                 break;
             }
             let tl = std::time::Instant::now();
-            let (transfer, next) = coarsen(&nodes);
+            let (transfer, next) = Transfer::coarsen(&nodes);
             let coarsen_ms = tl.elapsed().as_millis() as u64;
-            let at = placements(&next);
             let tl = std::time::Instant::now();
             let ac = match coarse.last() {
-                Some(a) => a.galerkin(&transfer, &at)?,
-                None => fine.galerkin(&transfer, &at)?,
+                Some(a) => a.galerkin(&transfer, true)?,
+                None => fine.galerkin(&transfer, true)?,
             };
             tracing::debug!(
                 sweep_ms,
@@ -407,73 +407,6 @@ struct Work {
     coarse_z: Vec<f64>,
 }
 
-/// Where each node sits on its lattice, for [`SymCsr::galerkin`].
-fn placements(nodes: &[Node]) -> Vec<Option<[u32; 2]>> {
-    nodes
-        .iter()
-        .map(|n| match *n {
-            Node::Lattice(x, y) => Some([x, y]),
-            Node::Exact => None,
-        })
-        .collect()
-}
-
-/// One coarsening step: exact nodes map to themselves, lattice nodes
-/// interpolate bilinearly from the lattice of twice their spacing.
-fn coarsen(nodes: &[Node]) -> (Transfer, Vec<Node>) {
-    let (mut w, mut h) = (0u32, 0u32);
-    for n in nodes {
-        if let Node::Lattice(x, y) = *n {
-            w = w.max(x / 2 + 2);
-            h = h.max(y / 2 + 2);
-        }
-    }
-    let mut id = vec![u32::MAX; w as usize * h as usize];
-    let mut coarse = Vec::new();
-    let mut row_ptr = Vec::with_capacity(nodes.len() + 1);
-    let mut row_col = Vec::with_capacity(nodes.len() * 2);
-    let mut row_w = Vec::with_capacity(nodes.len() * 2);
-    row_ptr.push(0);
-    // Along one axis: an even coordinate sits on a coarse node, an odd one halfway.
-    let parents = |x: u32| -> [(u32, f32); 2] {
-        if x.is_multiple_of(2) {
-            [(x / 2, 1.0), (0, 0.0)]
-        } else {
-            [(x / 2, 0.5), (x / 2 + 1, 0.5)]
-        }
-    };
-    for n in nodes {
-        match *n {
-            Node::Exact => {
-                row_col.push(coarse.len() as u32);
-                row_w.push(1.0);
-                coarse.push(Node::Exact);
-            }
-            Node::Lattice(x, y) => {
-                for (cy, wy) in parents(y) {
-                    for (cx, wx) in parents(x) {
-                        if wx * wy == 0.0 {
-                            continue;
-                        }
-                        let slot = &mut id[(cy * w + cx) as usize];
-                        if *slot == u32::MAX {
-                            *slot = coarse.len() as u32;
-                            coarse.push(Node::Lattice(cx, cy));
-                        }
-                        row_col.push(*slot);
-                        row_w.push(wx * wy);
-                    }
-                }
-            }
-        }
-        row_ptr.push(row_col.len());
-    }
-    (
-        Transfer::from_rows(coarse.len(), row_ptr, row_col, row_w),
-        coarse,
-    )
-}
-
 /// Per-channel sums of `f(u_i, v_i)`, in fixed chunks so the bits do not
 /// depend on the thread count.
 fn dots<const C: usize>(u: &[f64], v: &[f64]) -> [f64; 4] {
@@ -658,10 +591,10 @@ mod tests {
     #[test]
     fn lattice_galerkin_equals_the_general_triple_product() {
         let (a, nodes) = problem(9, 7);
-        let (p, coarse) = coarsen(&nodes);
-        let at = placements(&coarse);
-        let fast = a.galerkin(&p, &at).unwrap();
-        let general = a.galerkin(&p, &vec![None; coarse.len()]).unwrap();
+        let (p, coarse) = Transfer::coarsen(&nodes);
+        assert!(coarse.len() < nodes.len());
+        let fast = a.galerkin(&p, true).unwrap();
+        let general = a.galerkin(&p, false).unwrap();
         assert_eq!(fast.ptr, general.ptr);
         assert_eq!(fast.col, general.col);
         for (x, y) in fast.val.iter().zip(&general.val) {

@@ -10,6 +10,7 @@ use faer::sparse::{SparseColMat, SymbolicSparseColMat};
 use rayon::prelude::*;
 
 use super::system::SolveError;
+use super::transfer::Transfer;
 
 /// Calls a kernel with the channel count as a constant (1 to 4), so that its
 /// per-row channel loops unroll and short copies stay inline.
@@ -204,15 +205,14 @@ pub trait Rows: Sync {
 
     /// The Galerkin product Pᵀ A P, row by row over the coarse unknowns.
     ///
-    /// `at[k]` places coarse unknown k on a lattice. A lattice row couples
+    /// With `lattice`, rows use where P places the coarse unknowns: a lattice row couples
     /// only to the 3×3 lattice nodes around it (a bilinear P widens a stencil
     /// of reach one by at most one coarse step) and to unknowns off the
     /// lattice, so it sums into nine fixed slots and a short list instead of
-    /// an accumulator over all coarse unknowns; rows off the lattice (`None`)
-    /// sum into a list that is sorted once.
-    fn galerkin(&self, p: &Transfer, at: &[Option<[u32; 2]>]) -> Result<SymCsr, SolveError> {
+    /// an accumulator over all coarse unknowns; rows off the lattice (and
+    /// every row without `lattice`) sum into a list that is sorted once.
+    fn galerkin(&self, p: &Transfer, lattice: bool) -> Result<SymCsr, SolveError> {
         let nc = p.coarse;
-        assert_eq!(at.len(), nc, "one placement per coarse unknown");
         // One task per thread: a few large parts are handed back to the
         // system once joined, where many small ones would stay in the heap.
         // A row's sum runs in a fixed order whichever task computes it.
@@ -233,16 +233,17 @@ pub trait Rows: Sync {
                     list.clear();
                     let mut slot_val = [0.0f64; 9];
                     let mut slot_col = [u32::MAX; 9];
-                    let centre = at[k];
-                    for (i, wi) in p.fine_of(k) {
+                    let centre = p.placement(k).filter(|_| lattice);
+                    let (fine, len) = p.fine_of(k);
+                    for &(i, wi) in &fine[..len] {
                         // Gathered first: the loop below is too large to
                         // inline into each of a row's entries.
                         entries.clear();
                         self.for_each(i, |j, aij| entries.push((j, aij)));
                         for &(j, aij) in &entries {
                             let wa = wi * aij;
-                            for (l, wj) in p.coarse_of(j) {
-                                let slot = match (centre, at[l]) {
+                            p.for_each_parent(j, |l, wj, at| {
+                                let slot = match (centre, at) {
                                     (Some([x, y]), Some([lx, ly]))
                                         if x.abs_diff(lx) <= 1 && y.abs_diff(ly) <= 1 =>
                                     {
@@ -257,7 +258,7 @@ pub trait Rows: Sync {
                                     }
                                     None => list.push((l as u32, wa * wj)),
                                 }
-                            }
+                            });
                         }
                     }
                     for s in 0..9 {
@@ -387,131 +388,6 @@ unsafe fn gauss_seidel_n<const C: usize>(
     }
 }
 
-/// A prolongation P from `coarse` unknowns to `fine` ones, stored both by
-/// fine row (for prolongation) and by coarse column (for restriction, Pᵀ).
-/// Its weights are bilinear (1, 1/2, 1/4), exact in f32, which halves
-/// their memory and traffic.
-#[derive(Clone, Debug, Default)]
-pub struct Transfer {
-    pub fine: usize,
-    pub coarse: usize,
-    row_ptr: Vec<usize>,
-    row_col: Vec<u32>,
-    row_w: Vec<f32>,
-    col_ptr: Vec<usize>,
-    col_row: Vec<u32>,
-    col_w: Vec<f32>,
-}
-
-impl Transfer {
-    /// From each fine unknown's (coarse unknown, weight) entries, in fine
-    /// order: row `i` is `row_col[row_ptr[i]..row_ptr[i + 1]]`.
-    pub fn from_rows(
-        coarse: usize,
-        row_ptr: Vec<usize>,
-        row_col: Vec<u32>,
-        row_w: Vec<f32>,
-    ) -> Self {
-        let fine = row_ptr.len() - 1;
-        let mut count = vec![0usize; coarse + 1];
-        for &c in &row_col {
-            count[c as usize + 1] += 1;
-        }
-        Self::finish(fine, coarse, row_ptr, row_col, row_w, count)
-    }
-
-    fn finish(
-        fine: usize,
-        coarse: usize,
-        row_ptr: Vec<usize>,
-        row_col: Vec<u32>,
-        row_w: Vec<f32>,
-        mut count: Vec<usize>,
-    ) -> Self {
-        for k in 0..coarse {
-            count[k + 1] += count[k];
-        }
-        let col_ptr = count.clone();
-        let mut col_row = vec![0u32; row_col.len()];
-        let mut col_w = vec![0.0f32; row_col.len()];
-        // Fine rows in increasing order, so each column comes out sorted.
-        for i in 0..fine {
-            for e in row_ptr[i]..row_ptr[i + 1] {
-                let k = &mut count[row_col[e] as usize];
-                col_row[*k] = i as u32;
-                col_w[*k] = row_w[e];
-                *k += 1;
-            }
-        }
-        Transfer {
-            fine,
-            coarse,
-            row_ptr,
-            row_col,
-            row_w,
-            col_ptr,
-            col_row,
-            col_w,
-        }
-    }
-
-    /// The coarse unknowns fine unknown `i` interpolates from, with weights.
-    #[inline]
-    pub fn coarse_of(&self, i: usize) -> impl Iterator<Item = (usize, f64)> + '_ {
-        (self.row_ptr[i]..self.row_ptr[i + 1])
-            .map(|e| (self.row_col[e] as usize, f64::from(self.row_w[e])))
-    }
-
-    /// The fine unknowns coarse unknown `k` contributes to, with weights.
-    #[inline]
-    pub fn fine_of(&self, k: usize) -> impl Iterator<Item = (usize, f64)> + '_ {
-        (self.col_ptr[k]..self.col_ptr[k + 1])
-            .map(|e| (self.col_row[e] as usize, f64::from(self.col_w[e])))
-    }
-
-    /// rc = Pᵀ r.
-    pub fn restrict(&self, r: &[f64], rc: &mut [f64], ch: usize) {
-        by_channels!(ch, self.restrict_n(r, rc))
-    }
-
-    fn restrict_n<const C: usize>(&self, r: &[f64], rc: &mut [f64]) {
-        rc.par_chunks_mut(CHUNK * C)
-            .enumerate()
-            .for_each(|(b, out)| {
-                for (k, o) in out.chunks_exact_mut(C).enumerate() {
-                    let mut s = [0.0f64; C];
-                    for (i, w) in self.fine_of(b * CHUNK + k) {
-                        let ri = &r[i * C..(i + 1) * C];
-                        for c in 0..C {
-                            s[c] += w * ri[c];
-                        }
-                    }
-                    o.copy_from_slice(&s);
-                }
-            });
-    }
-
-    /// z += P zc.
-    pub fn prolong_add(&self, zc: &[f64], z: &mut [f64], ch: usize) {
-        by_channels!(ch, self.prolong_add_n(zc, z))
-    }
-
-    fn prolong_add_n<const C: usize>(&self, zc: &[f64], z: &mut [f64]) {
-        z.par_chunks_mut(CHUNK * C)
-            .enumerate()
-            .for_each(|(b, out)| {
-                for (k, o) in out.chunks_exact_mut(C).enumerate() {
-                    for (j, w) in self.coarse_of(b * CHUNK + k) {
-                        let zj = &zc[j * C..(j + 1) * C];
-                        for c in 0..C {
-                            o[c] += w * zj[c];
-                        }
-                    }
-                }
-            });
-    }
-}
-
 #[cfg(test)]
 #[allow(clippy::needless_range_loop)]
 mod tests {
@@ -550,34 +426,17 @@ mod tests {
 
     #[test]
     fn galerkin_matches_dense_triple_product() {
+        use crate::seam::multigrid::Node;
         let a = laplacian(7);
         // Linear interpolation from 4 coarse nodes at fine 0, 2, 4, 6.
-        let rows: Vec<Vec<(u32, f64)>> = (0..7u32)
-            .map(|i| {
-                if i % 2 == 0 {
-                    vec![(i / 2, 1.0)]
-                } else {
-                    vec![(i / 2, 0.5), (i / 2 + 1, 0.5)]
-                }
-            })
-            .collect();
-        let mut ptr = vec![0];
-        let (mut col, mut w) = (Vec::new(), Vec::new());
-        for r in &rows {
-            for &(c, x) in r {
-                col.push(c);
-                w.push(x as f32);
-            }
-            ptr.push(col.len());
-        }
-        let p = Transfer::from_rows(4, ptr, col, w);
-        let ac = dense(&a.galerkin(&p, &[None; 4]).unwrap());
+        let nodes: Vec<Node> = (0..7).map(|x| Node::Lattice(x, 0)).collect();
+        let (p, coarse) = Transfer::coarsen(&nodes);
+        assert_eq!(coarse.len(), 4);
+        let ac = dense(&a.galerkin(&p, false).unwrap());
         let ad = dense(&a);
         let pd = |i: usize, k: usize| {
-            rows[i]
-                .iter()
-                .find(|e| e.0 as usize == k)
-                .map_or(0.0, |e| e.1)
+            let (c, len) = p.coarse_of(i);
+            c[..len].iter().find(|e| e.0 == k).map_or(0.0, |e| e.1)
         };
         for k in 0..4 {
             for l in 0..4 {
@@ -594,16 +453,6 @@ mod tests {
                 );
             }
         }
-        // Restriction is the transpose of prolongation: <P zc, r> = <zc, Pᵀ r>.
-        let r: Vec<f64> = (0..7).map(|i| (i as f64).sin()).collect();
-        let zc = [0.3, -1.0, 2.0, 0.7];
-        let mut z = vec![0.0; 7];
-        p.prolong_add(&zc, &mut z, 1);
-        let mut rc = vec![0.0; 4];
-        p.restrict(&r, &mut rc, 1);
-        let lhs: f64 = z.iter().zip(&r).map(|(a, b)| a * b).sum();
-        let rhs: f64 = zc.iter().zip(&rc).map(|(a, b)| a * b).sum();
-        assert!((lhs - rhs).abs() < 1e-12);
     }
 
     #[test]
