@@ -284,8 +284,15 @@ pub trait Rows: Sync {
         let mut ptr = Vec::with_capacity(nc + 1);
         ptr.push(0);
         let total: usize = chunks.iter().map(|c| c.1.len()).sum();
-        let mut col = Vec::with_capacity(total);
-        let mut val = Vec::with_capacity(total);
+        // The first part's arrays grow into the whole (a large reallocation
+        // remaps its pages instead of copying them), so only the rest is copied.
+        let mut chunks = chunks.into_iter();
+        let (lens, mut col, mut val) = chunks.next().unwrap_or_default();
+        col.reserve_exact(total - col.len());
+        val.reserve_exact(total - val.len());
+        for l in lens {
+            ptr.push(ptr.last().copied().unwrap_or(0) + l);
+        }
         for (lens, c, v) in chunks {
             for l in lens {
                 ptr.push(ptr.last().copied().unwrap_or(0) + l);
