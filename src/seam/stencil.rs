@@ -5,8 +5,9 @@
 //! (−w_grad) to each neighbour in the band, and a diagonal. Unknowns are
 //! numbered in texel order, so the left and right neighbours are the previous
 //! and next unknowns; such a row needs its diagonal, the unknowns above and
-//! below, and two bits (17 bytes, where compressed rows take about 75). Rows
-//! that carry seam terms, a few percent, are stored in compressed rows.
+//! below, and two bits (21 bytes with its place among the stored rows, where
+//! compressed rows take about 75). Rows that carry seam terms, a few percent,
+//! are stored in compressed rows.
 //! Both kinds list their entries in column order, so every kernel of
 //! [`Rows`] gives the same bits as on the whole matrix in compressed rows.
 
