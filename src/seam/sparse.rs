@@ -1,6 +1,6 @@
-//! Symmetric sparse matrices in compressed rows, with the kernels the
-//! multigrid solver needs: products, Gauss–Seidel sweeps and the Galerkin
-//! triple product.
+//! The kernels the multigrid solver runs on symmetric matrices (products,
+//! Gauss–Seidel sweeps and the Galerkin triple product), written once
+//! against [`Rows`], and symmetric matrices in compressed rows.
 //!
 //! Vectors hold `ch` channels per unknown, interleaved, so one pass over the
 //! matrix serves every channel. Every kernel gives the same bits whatever the
@@ -370,28 +370,40 @@ unsafe fn gauss_seidel_n<const C: usize>(
     z: *mut f64,
     forward: bool,
 ) {
-    let sweep = |&i: &u32| {
-        let i = i as usize;
-        let mut s: [f64; C] = r[i * C..(i + 1) * C].try_into().expect("C values");
-        // The reciprocal does not wait on the sweep, the division would.
-        let inv = 1.0 / a.diagonal(i);
-        a.for_each(i, |j, v| {
-            if j != i {
-                for (c, sc) in s.iter_mut().enumerate() {
-                    // SAFETY: j < n (as `Rows` requires), c < C: in bounds.
-                    *sc -= v * unsafe { z.add(j * C + c).read() };
-                }
-            }
-        });
-        for (c, sc) in s.iter().enumerate() {
-            // SAFETY: i < n by the caller's contract.
-            unsafe { z.add(i * C + c).write(sc * inv) };
-        }
-    };
+    // SAFETY: the caller's contract, row by row.
+    let sweep = |&i: &u32| unsafe { relax_row::<C>(a, i as usize, r, z) };
     if forward {
         rows.iter().for_each(sweep);
     } else {
         rows.iter().rev().for_each(sweep);
+    }
+}
+
+/// One Gauss–Seidel update of row `i`, in direct form:
+/// z_i = (r_i − Σ_{j≠i} a_ij z_j) / a_ii.
+///
+/// # Safety
+/// As [`Rows::gauss_seidel_raw`] for the one row `i`, with `C` channels.
+pub(super) unsafe fn relax_row<const C: usize>(
+    a: &(impl Rows + ?Sized),
+    i: usize,
+    r: &[f64],
+    z: *mut f64,
+) {
+    let mut s: [f64; C] = r[i * C..(i + 1) * C].try_into().expect("C values");
+    // The reciprocal does not wait on the sweep, the division would.
+    let inv = 1.0 / a.diagonal(i);
+    a.for_each(i, |j, v| {
+        if j != i {
+            for (c, sc) in s.iter_mut().enumerate() {
+                // SAFETY: j < n (as `Rows` requires), c < C: in bounds.
+                *sc -= v * unsafe { z.add(j * C + c).read() };
+            }
+        }
+    });
+    for (c, sc) in s.iter().enumerate() {
+        // SAFETY: i < n by the caller's contract.
+        unsafe { z.add(i * C + c).write(sc * inv) };
     }
 }
 

@@ -11,7 +11,7 @@
 //! Both kinds list their entries in column order, so every kernel of
 //! [`Rows`] gives the same bits as on the whole matrix in compressed rows.
 
-use super::sparse::{by_channels, Rows, SymCsr};
+use super::sparse::{by_channels, relax_row, Rows, SymCsr};
 use super::system::SolveError;
 
 /// No neighbour / a stencil row (not stored).
@@ -97,7 +97,7 @@ impl StencilMatrix {
             // Column order: up < left (i − 1) < i < right (i + 1) < down.
             let lowest_side = if sides & LEFT != 0 { i - 1 } else { i };
             let highest_side = if sides & RIGHT != 0 { i + 1 } else { i };
-            let up_ok = up == NONE || (up as usize) < lowest_side.min(i);
+            let up_ok = up == NONE || (up as usize) < lowest_side;
             let down_ok = down == NONE || (down as usize > highest_side && (down as usize) < n);
             if !(left_ok && right_ok && up_ok && down_ok) {
                 return bad(format!("stencil row {i} out of order or range"));
@@ -251,58 +251,46 @@ impl StencilMatrix {
         z: *mut f64,
         forward: bool,
     ) {
-        // SAFETY (both closures): every index comes from a row or column
-        // below n, as `from_parts` checked, and c < C.
+        // SAFETY: every index comes from a row or column below n, as
+        // `from_parts` checked, and c < C.
         let get =
             |j: usize| -> [f64; C] { std::array::from_fn(|c| unsafe { z.add(j * C + c).read() }) };
         let sweep = |&i: &u32| {
             let i = i as usize;
+            if self.stored[i] != NONE {
+                // SAFETY: the caller's contract, for this row.
+                unsafe { relax_row::<C>(self, i, r, z) };
+                return;
+            }
             let mut s: [f64; C] = r[i * C..(i + 1) * C].try_into().expect("C values");
-            let k = self.stored[i];
-            let new = if k != NONE {
-                let k = k as usize;
-                for e in self.ptr[k]..self.ptr[k + 1] {
-                    let j = self.col[e] as usize;
-                    if j != i {
-                        let (v, zj) = (self.val[e], get(j));
-                        for c in 0..C {
-                            s[c] -= v * zj[c];
-                        }
-                    }
+            let (sides, off, inv) = (self.sides[i], self.off, 1.0 / self.diag[i]);
+            let mut far = |j: usize| {
+                let zj = get(j);
+                for c in 0..C {
+                    s[c] -= off * zj[c];
                 }
-                let d = self.diag[i];
-                s.map(|x| x / d)
-            } else {
-                let (sides, off, inv) = (self.sides[i], self.off, 1.0 / self.diag[i]);
-                let mut far = |j: usize| {
-                    let zj = get(j);
-                    for c in 0..C {
-                        s[c] -= off * zj[c];
-                    }
-                };
-                if self.up[i] != NONE {
-                    far(self.up[i] as usize);
-                }
-                if self.down[i] != NONE {
-                    far(self.down[i] as usize);
-                }
-                let (before, after) = (sides & LEFT != 0, sides & RIGHT != 0);
-                let (last, other) = if forward {
-                    (before.then(|| i - 1), after.then(|| i + 1))
-                } else {
-                    (after.then(|| i + 1), before.then(|| i - 1))
-                };
-                if let Some(j) = other {
-                    far(j);
-                }
-                if let Some(j) = last {
-                    far(j);
-                }
-                s.map(|x| x * inv)
             };
-            for (c, v) in new.into_iter().enumerate() {
+            if self.up[i] != NONE {
+                far(self.up[i] as usize);
+            }
+            if self.down[i] != NONE {
+                far(self.down[i] as usize);
+            }
+            let (before, after) = (sides & LEFT != 0, sides & RIGHT != 0);
+            let (last, other) = if forward {
+                (before.then(|| i - 1), after.then(|| i + 1))
+            } else {
+                (after.then(|| i + 1), before.then(|| i - 1))
+            };
+            if let Some(j) = other {
+                far(j);
+            }
+            if let Some(j) = last {
+                far(j);
+            }
+            for (c, v) in s.into_iter().enumerate() {
                 // SAFETY: i < n by the caller's contract.
-                unsafe { z.add(i * C + c).write(v) };
+                unsafe { z.add(i * C + c).write(v * inv) };
             }
         };
         if forward {
