@@ -10,7 +10,7 @@ use faer::sparse::{SparseColMat, SymbolicSparseColMat};
 use rayon::prelude::*;
 
 use super::system::SolveError;
-use super::transfer::Transfer;
+use super::transfer::{Square, Transfer};
 
 /// Calls a kernel with the channel count as a constant (1 to 4), so that its
 /// per-row channel loops unroll and short copies stay inline.
@@ -220,66 +220,7 @@ pub trait Rows: Sync {
         let per = nc.div_ceil(tasks);
         let chunks: Vec<(Vec<usize>, Vec<u32>, Vec<f64>)> = (0..tasks)
             .into_par_iter()
-            .map(|b| {
-                let rows = (b * per).min(nc)..((b + 1) * per).min(nc);
-                let mut lens = Vec::with_capacity(rows.len());
-                // Bilinear coarsening keeps about nine entries a row.
-                let mut out_col = Vec::with_capacity(rows.len() * 10);
-                let mut out_val = Vec::with_capacity(rows.len() * 10);
-                let mut list: Vec<(u32, f64)> = Vec::new();
-                let mut entries: Vec<(usize, f64)> = Vec::new();
-                for k in rows {
-                    let before = out_col.len();
-                    list.clear();
-                    let mut slot_val = [0.0f64; 9];
-                    let mut slot_col = [u32::MAX; 9];
-                    let centre = p.placement(k).filter(|_| lattice);
-                    let (fine, len) = p.fine_of(k);
-                    for &(i, wi) in &fine[..len] {
-                        // Gathered first: the loop below is too large to
-                        // inline into each of a row's entries.
-                        entries.clear();
-                        self.for_each(i, |j, aij| entries.push((j, aij)));
-                        for &(j, aij) in &entries {
-                            let wa = wi * aij;
-                            p.for_each_parent(j, |l, wj, at| {
-                                let slot = match (centre, at) {
-                                    (Some([x, y]), Some([lx, ly]))
-                                        if x.abs_diff(lx) <= 1 && y.abs_diff(ly) <= 1 =>
-                                    {
-                                        Some((ly + 1 - y) as usize * 3 + (lx + 1 - x) as usize)
-                                    }
-                                    _ => None,
-                                };
-                                match slot {
-                                    Some(s) => {
-                                        slot_val[s] += wa * wj;
-                                        slot_col[s] = l as u32;
-                                    }
-                                    None => list.push((l as u32, wa * wj)),
-                                }
-                            });
-                        }
-                    }
-                    for s in 0..9 {
-                        if slot_col[s] != u32::MAX {
-                            list.push((slot_col[s], slot_val[s]));
-                        }
-                    }
-                    // Stable, so equal columns are summed in the order they came.
-                    list.sort_by_key(|e| e.0);
-                    for &(c, v) in &list {
-                        if out_col.len() > before && out_col.last() == Some(&c) {
-                            *out_val.last_mut().expect("a value per column") += v;
-                        } else {
-                            out_col.push(c);
-                            out_val.push(v);
-                        }
-                    }
-                    lens.push(out_col.len() - before);
-                }
-                (lens, out_col, out_val)
-            })
+            .map(|b| self.galerkin_rows(p, (b * per).min(nc)..((b + 1) * per).min(nc), lattice))
             .collect();
         let mut ptr = Vec::with_capacity(nc + 1);
         ptr.push(0);
@@ -302,6 +243,119 @@ pub trait Rows: Sync {
         }
         SymCsr::from_parts(ptr, col, val)
     }
+
+    /// Rows `rows` of Pᵀ A P: their lengths, columns and values.
+    #[inline(never)]
+    fn galerkin_rows(
+        &self,
+        p: &Transfer,
+        rows: std::ops::Range<usize>,
+        lattice: bool,
+    ) -> (Vec<usize>, Vec<u32>, Vec<f64>) {
+        let mut lens = Vec::with_capacity(rows.len());
+        // Bilinear coarsening keeps about nine entries a row.
+        let mut out_col = Vec::with_capacity(rows.len() * 10);
+        let mut out_val = Vec::with_capacity(rows.len() * 10);
+        let mut list: Vec<(u32, f64)> = Vec::new();
+        let mut entries: Vec<(usize, f64)> = Vec::new();
+        for k in rows {
+            let before = out_col.len();
+            list.clear();
+            let centre = p.placement(k).filter(|_| lattice);
+            let (fine, len) = p.fine_of(k);
+            match centre {
+                Some(c) => galerkin_lattice_row(self, p, c, &fine[..len], &mut entries, &mut list),
+                None => {
+                    for &(i, wi) in &fine[..len] {
+                        self.for_each(i, |j, aij| {
+                            let wa = wi * aij;
+                            p.for_each_parent(j, |l, wj| list.push((l as u32, wa * wj)));
+                        });
+                    }
+                }
+            }
+            // Stable, so equal columns are summed in the order they came.
+            list.sort_by_key(|e| e.0);
+            for &(c, v) in &list {
+                if out_col.len() > before && out_col.last() == Some(&c) {
+                    *out_val.last_mut().expect("a value per column") += v;
+                } else {
+                    out_col.push(c);
+                    out_val.push(v);
+                }
+            }
+            lens.push(out_col.len() - before);
+        }
+        (lens, out_col, out_val)
+    }
+}
+
+/// The entries of the Galerkin row of the coarse lattice node at `centre`
+/// (fine unknowns `fine` with their weights) into `list`, unsorted.
+///
+/// Its lattice entries fall in the 3×3 coarse points around it (a bilinear
+/// P widens a stencil of reach one by at most one coarse step). Each fine
+/// lattice neighbour spreads over a 2×2 square of coarse points (weight 0 on
+/// the far side of an even coordinate), summed into a 5×5 window without a
+/// branch on the parities (which no predictor follows), and each point is
+/// looked up once at the end.
+#[inline]
+fn galerkin_lattice_row<A: Rows + ?Sized>(
+    a: &A,
+    p: &Transfer,
+    [x, y]: [u32; 2],
+    fine: &[(usize, f64)],
+    entries: &mut Vec<(usize, f64)>,
+    list: &mut Vec<(u32, f64)>,
+) {
+    const W: usize = 5;
+    let mut slot = [0.0f64; W * W];
+    let mut touched = 0u32;
+    for &(i, wi) in fine {
+        // Gathered first: the loop below is too large to inline into each
+        // of a row's entries.
+        entries.clear();
+        a.for_each(i, |j, aij| entries.push((j, aij)));
+        for &(j, aij) in entries.iter() {
+            let wa = wi * aij;
+            match p.parent_square(j) {
+                Square::Exact(l) => list.push((l, wa)),
+                Square::At {
+                    x: bx,
+                    y: by,
+                    wx,
+                    wy,
+                } if bx + 2 >= x && bx <= x + 1 && by + 2 >= y && by <= y + 1 => {
+                    let s = (by + 2 - y) as usize * W + (bx + 2 - x) as usize;
+                    slot[s] += wa * (wx[0] * wy[0]);
+                    slot[s + 1] += wa * (wx[1] * wy[0]);
+                    slot[s + W] += wa * (wx[0] * wy[1]);
+                    slot[s + W + 1] += wa * (wx[1] * wy[1]);
+                    let (ox, oy) = ((wx[1] != 0.0) as u32, (wy[1] != 0.0) as u32);
+                    touched |= (1 | ox << 1 | oy << W | (ox & oy) << (W + 1)) << s;
+                }
+                // Not expected from bilinear coarsening; stay correct regardless.
+                Square::At { .. } => p.for_each_parent(j, |l, wj| list.push((l as u32, wa * wj))),
+            }
+        }
+    }
+    for (s, &v) in slot.iter().enumerate() {
+        if touched & (1 << s) != 0 {
+            let (lx, ly) = (
+                (x + (s % W) as u32).wrapping_sub(2),
+                (y + (s / W) as u32).wrapping_sub(2),
+            );
+            list.push((lattice_index(p, lx, ly), v));
+        }
+    }
+}
+
+/// The coarse unknown at a lattice point a fine lattice node interpolates
+/// from (on the grid by construction, `Transfer::coarsen`).
+#[inline]
+fn lattice_index(p: &Transfer, x: u32, y: u32) -> u32 {
+    p.coarse_at_point(x, y)
+        .expect("a parent on the coarse grid") as u32
 }
 
 impl Rows for SymCsr {

@@ -17,6 +17,20 @@ const NONE: u32 = u32::MAX;
 /// per task of [`Transfer::prolong_add`].
 const CHUNK: usize = 8192;
 
+/// The coarse unknowns a fine one interpolates from ([`Transfer::parent_square`]).
+#[derive(Clone, Copy, Debug)]
+pub enum Square {
+    /// An exact node (its coarse index).
+    Exact(u32),
+    /// The lattice points (x, y) to (x + 1, y + 1), weighted by `wx[dx]·wy[dy]`.
+    At {
+        x: u32,
+        y: u32,
+        wx: [f64; 2],
+        wy: [f64; 2],
+    },
+}
+
 /// The bilinear weights along one axis: a coarse node's own point, then the
 /// two points halfway to its neighbours.
 const HALF: f64 = 0.5;
@@ -131,7 +145,7 @@ impl Transfer {
     pub fn coarse_of(&self, i: usize) -> ([(usize, f64); 4], usize) {
         let mut out = [(0, 0.0); 4];
         let mut len = 0;
-        self.for_each_parent(i, |k, w, _| {
+        self.for_each_parent(i, |k, w| {
             out[len] = (k, w);
             len += 1;
         });
@@ -139,13 +153,12 @@ impl Transfer {
     }
 
     /// Calls `f` with each coarse unknown fine unknown `i` interpolates
-    /// from, its weight and its lattice point (`None`: an exact node), in
-    /// the order of [`Self::coarse_of`].
+    /// from and its weight, in the order of [`Self::coarse_of`].
     #[inline(always)]
-    pub fn for_each_parent(&self, i: usize, mut f: impl FnMut(usize, f64, Option<[u32; 2]>)) {
+    pub fn for_each_parent(&self, i: usize, mut f: impl FnMut(usize, f64)) {
         let [x, y] = self.fine_at[i];
         if x == NONE {
-            f(y as usize, 1.0, None);
+            f(y as usize, 1.0);
             return;
         }
         let (py, ny) = parents(y);
@@ -154,9 +167,40 @@ impl Transfer {
             for &(cx, wx) in &px[..nx] {
                 // A fine lattice node's parents are on the grid (`coarsen`).
                 let k = self.coarse_grid.id[(cy * self.coarse_grid.w + cx) as usize];
-                f(k as usize, wx * wy, Some([cx, cy]));
+                f(k as usize, wx * wy);
             }
         }
+    }
+
+    /// The coarse points fine unknown `i` interpolates from, as the 2×2
+    /// square from its lower corner (weight 0 on the far side of an even
+    /// coordinate), or its exact coarse unknown.
+    #[inline(always)]
+    pub fn parent_square(&self, i: usize) -> Square {
+        let [x, y] = self.fine_at[i];
+        if x == NONE {
+            return Square::Exact(y);
+        }
+        let axis = |c: u32| {
+            if c.is_multiple_of(2) {
+                [1.0, 0.0]
+            } else {
+                [HALF, HALF]
+            }
+        };
+        Square::At {
+            x: x / 2,
+            y: y / 2,
+            wx: axis(x),
+            wy: axis(y),
+        }
+    }
+
+    /// The coarse unknown at lattice point (x, y); `None` if there is none.
+    #[inline]
+    pub fn coarse_at_point(&self, x: u32, y: u32) -> Option<usize> {
+        let k = self.coarse_grid.at(x, y);
+        (k != NONE).then_some(k as usize)
     }
 
     /// Coarse unknown `k`'s lattice point, `None` for an exact node.
@@ -224,7 +268,7 @@ impl Transfer {
             .enumerate()
             .for_each(|(b, out)| {
                 for (k, o) in out.chunks_exact_mut(C).enumerate() {
-                    self.for_each_parent(b * CHUNK + k, |j, w, _| {
+                    self.for_each_parent(b * CHUNK + k, |j, w| {
                         let zj = &zc[j * C..(j + 1) * C];
                         for c in 0..C {
                             o[c] += w * zj[c];
