@@ -459,16 +459,7 @@ fn solve_band(
     let x = if direct {
         Cholesky::new(&a.to_csr()?.to_faer())?.solve_interleaved(&b, ch)
     } else {
-        let mut nodes = Vec::with_capacity(n);
-        let mut x0 = Vec::with_capacity(n * ch);
-        for (t, _) in unknown.iter().enumerate().filter(|(_, u)| **u != u32::MAX) {
-            nodes.push(if dist[t] <= EXACT_RADIUS {
-                Node::Exact
-            } else {
-                Node::Lattice((t % grid.width) as u32, (t / grid.width) as u32)
-            });
-            x0.extend(start[t * ch..(t + 1) * ch].iter().map(|&v| f64::from(v)));
-        }
+        let (nodes, x0) = place_nodes(grid.width, &unknown, n, dist, start, ch);
         tracing::debug!(
             elapsed_ms = t0.elapsed().as_millis() as u64,
             "multigrid nodes placed"
@@ -492,6 +483,56 @@ fn solve_band(
             }
         });
     Ok((out, n))
+}
+
+/// Texel rows per parallel task of [`place_nodes`].
+const PLACE_ROWS: usize = 16;
+
+/// The band's unknowns' places in the hierarchy (exact within
+/// [`EXACT_RADIUS`] of a seam texel) and the starting guess, in unknown order.
+///
+/// Unknowns are numbered in texel order, so each run of texel rows fills a
+/// contiguous run of both outputs: the runs are counted, then filled in parallel.
+fn place_nodes(
+    width: usize,
+    unknown: &[u32],
+    n: usize,
+    dist: &[u32],
+    start: &[f32],
+    ch: usize,
+) -> (Vec<Node>, Vec<f64>) {
+    let run = PLACE_ROWS * width;
+    let counts: Vec<usize> = unknown
+        .par_chunks(run)
+        .map(|u| u.iter().filter(|&&u| u != u32::MAX).count())
+        .collect();
+    let mut nodes = vec![Node::Exact; n];
+    let mut x0 = vec![0.0f64; n * ch];
+    let mut parts = Vec::with_capacity(counts.len());
+    let (mut rest_n, mut rest_x) = (&mut nodes[..], &mut x0[..]);
+    for &c in &counts {
+        let (a, b) = std::mem::take(&mut rest_n).split_at_mut(c);
+        let (xa, xb) = std::mem::take(&mut rest_x).split_at_mut(c * ch);
+        parts.push((a, xa));
+        (rest_n, rest_x) = (b, xb);
+    }
+    parts
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(r, (nodes, x0))| {
+            let first = r * run;
+            let texels =
+                (first..(first + run).min(unknown.len())).filter(|&t| unknown[t] != u32::MAX);
+            for ((t, node), x) in texels.zip(nodes.iter_mut()).zip(x0.chunks_exact_mut(ch)) {
+                if dist[t] > EXACT_RADIUS {
+                    *node = Node::Lattice((t % width) as u32, (t / width) as u32);
+                }
+                for (xc, &v) in x.iter_mut().zip(&start[t * ch..(t + 1) * ch]) {
+                    *xc = f64::from(v);
+                }
+            }
+        });
+    (nodes, x0)
 }
 
 #[cfg(test)]

@@ -464,8 +464,7 @@ fn solve_n<const C: usize>(
     let mut rz = dots::<C>(&r, &z);
     let (mut last_step, mut last_ratio) = (0.0f64, MAX_RATIO);
     for it in 1..=MAX_ITERATIONS {
-        a.apply(&p, &mut q, ch);
-        let pq = dots::<C>(&p, &q);
+        let pq = a.apply_dot(&p, &mut q, ch, CHUNK);
         let mut alpha = [0.0f64; 4];
         for c in 0..ch {
             alpha[c] = if pq[c] > 0.0 { rz[c] / pq[c] } else { 0.0 };

@@ -122,10 +122,16 @@ pub trait Rows: Sync {
         by_channels!(ch, apply_n(self, x, y))
     }
 
+    /// y = A x, and per channel Σ x_i·y_i summed over fixed runs of `rows`
+    /// rows (so the bits do not depend on the thread count), the runs' sums
+    /// then added in order.
+    fn apply_dot(&self, x: &[f64], y: &mut [f64], ch: usize, rows: usize) -> [f64; 4] {
+        by_channels!(ch, apply_dot_n(self, x, y, rows))
+    }
+
     /// r = b − A x.
     fn residual(&self, b: &[f64], x: &[f64], r: &mut [f64], ch: usize) {
-        self.apply(x, r, ch);
-        r.par_iter_mut().zip(b).for_each(|(ri, bi)| *ri = bi - *ri);
+        by_channels!(ch, residual_n(self, b, x, r))
     }
 
     /// (b − A z) on the rows `rows`, gathered in their order.
@@ -389,6 +395,63 @@ fn apply_n<const C: usize>(a: &(impl Rows + ?Sized), x: &[f64], y: &mut [f64]) {
             yi.copy_from_slice(&s);
         }
     });
+}
+
+fn apply_dot_n<const C: usize>(
+    a: &(impl Rows + ?Sized),
+    x: &[f64],
+    y: &mut [f64],
+    rows: usize,
+) -> [f64; 4] {
+    let parts: Vec<[f64; 4]> = y
+        .par_chunks_mut(rows * C)
+        .enumerate()
+        .map(|(b, ys)| {
+            let mut d = [0.0f64; 4];
+            for (k, yi) in ys.chunks_exact_mut(C).enumerate() {
+                let i = b * rows + k;
+                let mut s = [0.0f64; C];
+                a.for_each(i, |j, v| {
+                    let xj = &x[j * C..(j + 1) * C];
+                    for c in 0..C {
+                        s[c] += v * xj[c];
+                    }
+                });
+                yi.copy_from_slice(&s);
+                for c in 0..C {
+                    d[c] += x[i * C + c] * s[c];
+                }
+            }
+            d
+        })
+        .collect();
+    let mut d = [0.0f64; 4];
+    for p in parts {
+        for c in 0..4 {
+            d[c] += p[c];
+        }
+    }
+    d
+}
+
+fn residual_n<const C: usize>(a: &(impl Rows + ?Sized), b: &[f64], x: &[f64], r: &mut [f64]) {
+    r.par_chunks_mut(CHUNK * C)
+        .enumerate()
+        .for_each(|(blk, rs)| {
+            for (k, ri) in rs.chunks_exact_mut(C).enumerate() {
+                let i = blk * CHUNK + k;
+                let mut s = [0.0f64; C];
+                a.for_each(i, |j, v| {
+                    let xj = &x[j * C..(j + 1) * C];
+                    for c in 0..C {
+                        s[c] += v * xj[c];
+                    }
+                });
+                for c in 0..C {
+                    ri[c] = b[i * C + c] - s[c];
+                }
+            }
+        });
 }
 
 fn residual_rows_n<const C: usize>(
