@@ -16,7 +16,7 @@ use std::path::{Path, PathBuf};
 use gltf::json;
 use gltf::json::accessor::{ComponentType, Type};
 use gltf::json::mesh::{Mode, Semantic};
-use gltf::json::validation::{Checked, Validate};
+use gltf::json::validation::Checked;
 
 use super::image::{Texture, TextureError};
 use super::{Model, Skipped, TextureBinding, UvTriangle, Wrap};
@@ -340,8 +340,13 @@ fn split_container(bytes: &[u8]) -> Result<Container<'_>, LoadErrorKind> {
 }
 
 fn parse_root(json_bytes: &[u8]) -> Result<json::Root, LoadErrorKind> {
-    let root: json::Root = json::deserialize::from_slice(json_bytes)
-        .map_err(|e| malformed(format!("invalid glTF JSON: {e}")))?;
+    // `Root::from_slice` and `Document::from_json` are not generic: their
+    // serde and validation code is compiled once in gltf-json and gltf, not
+    // again (unoptimised, twice) in this crate.
+    let parse = || {
+        json::Root::from_slice(json_bytes).map_err(|e| malformed(format!("invalid glTF JSON: {e}")))
+    };
+    let root = parse()?;
 
     for ext in &root.extensions_required {
         if !SUPPORTED_REQUIRED_EXTENSIONS.contains(&ext.as_str()) {
@@ -365,16 +370,17 @@ fn parse_root(json_bytes: &[u8]) -> Result<json::Root, LoadErrorKind> {
         }
     }
 
-    let mut errors = Vec::new();
-    root.validate(&root, json::Path::new, &mut |path, err| {
-        let path = path();
-        // Required extensions were judged above, against what this loader
-        // honours rather than what gltf-json knows.
-        if path.as_str().starts_with("extensionsRequired") {
-            return;
-        }
-        errors.push(format!("{}: {}", path.as_str(), err));
-    });
+    let errors: Vec<String> = match gltf::Document::from_json(root) {
+        Ok(document) => return Ok(document.into_json()),
+        Err(gltf::Error::Validation(errors)) => errors
+            .iter()
+            // Required extensions were judged above, against what this
+            // loader honours rather than what gltf-json knows.
+            .filter(|(path, _)| !path.as_str().starts_with("extensionsRequired"))
+            .map(|(path, err)| format!("{}: {}", path.as_str(), err))
+            .collect(),
+        Err(e) => vec![e.to_string()],
+    };
     if let Some(first) = errors.first() {
         let more = match errors.len() {
             1 => String::new(),
@@ -382,7 +388,9 @@ fn parse_root(json_bytes: &[u8]) -> Result<json::Root, LoadErrorKind> {
         };
         return Err(malformed(format!("invalid glTF: {first}{more}")));
     }
-    Ok(root)
+    // Only required extensions that gltf-json does not know were reported,
+    // and the check consumed the document: parse it again.
+    parse()
 }
 
 fn semantic_name(s: &Checked<Semantic>) -> String {
