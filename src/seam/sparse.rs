@@ -250,7 +250,8 @@ pub trait Rows: Sync {
         SymCsr::from_parts(ptr, col, val)
     }
 
-    /// Rows `rows` of Pᵀ A P: their lengths, columns and values.
+    /// Rows `rows` of Pᵀ A P: their lengths, columns and values (not
+    /// inlined: a symbol of its own in profiles).
     #[inline(never)]
     fn galerkin_rows(
         &self,
@@ -382,17 +383,23 @@ impl Rows for SymCsr {
     }
 }
 
+/// Row `i` of A x, summed in the row's column order.
+#[inline(always)]
+fn row_product<const C: usize>(a: &(impl Rows + ?Sized), i: usize, x: &[f64]) -> [f64; C] {
+    let mut s = [0.0f64; C];
+    a.for_each(i, |j, v| {
+        let xj = &x[j * C..(j + 1) * C];
+        for c in 0..C {
+            s[c] += v * xj[c];
+        }
+    });
+    s
+}
+
 fn apply_n<const C: usize>(a: &(impl Rows + ?Sized), x: &[f64], y: &mut [f64]) {
     y.par_chunks_mut(CHUNK * C).enumerate().for_each(|(b, ys)| {
         for (k, yi) in ys.chunks_exact_mut(C).enumerate() {
-            let mut s = [0.0f64; C];
-            a.for_each(b * CHUNK + k, |j, v| {
-                let xj = &x[j * C..(j + 1) * C];
-                for c in 0..C {
-                    s[c] += v * xj[c];
-                }
-            });
-            yi.copy_from_slice(&s);
+            yi.copy_from_slice(&row_product::<C>(a, b * CHUNK + k, x));
         }
     });
 }
@@ -410,13 +417,7 @@ fn apply_dot_n<const C: usize>(
             let mut d = [0.0f64; 4];
             for (k, yi) in ys.chunks_exact_mut(C).enumerate() {
                 let i = b * rows + k;
-                let mut s = [0.0f64; C];
-                a.for_each(i, |j, v| {
-                    let xj = &x[j * C..(j + 1) * C];
-                    for c in 0..C {
-                        s[c] += v * xj[c];
-                    }
-                });
+                let s = row_product::<C>(a, i, x);
                 yi.copy_from_slice(&s);
                 for c in 0..C {
                     d[c] += x[i * C + c] * s[c];
@@ -440,13 +441,7 @@ fn residual_n<const C: usize>(a: &(impl Rows + ?Sized), b: &[f64], x: &[f64], r:
         .for_each(|(blk, rs)| {
             for (k, ri) in rs.chunks_exact_mut(C).enumerate() {
                 let i = blk * CHUNK + k;
-                let mut s = [0.0f64; C];
-                a.for_each(i, |j, v| {
-                    let xj = &x[j * C..(j + 1) * C];
-                    for c in 0..C {
-                        s[c] += v * xj[c];
-                    }
-                });
+                let s = row_product::<C>(a, i, x);
                 for c in 0..C {
                     ri[c] = b[i * C + c] - s[c];
                 }

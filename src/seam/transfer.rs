@@ -181,18 +181,14 @@ impl Transfer {
         if x == NONE {
             return Square::Exact(y);
         }
-        let axis = |c: u32| {
-            if c.is_multiple_of(2) {
-                [1.0, 0.0]
-            } else {
-                [HALF, HALF]
-            }
-        };
+        // `parents` leaves weight 0 in an even coordinate's second place.
+        let ([(bx, wx0), (_, wx1)], _) = parents(x);
+        let ([(by, wy0), (_, wy1)], _) = parents(y);
         Square::At {
-            x: x / 2,
-            y: y / 2,
-            wx: axis(x),
-            wy: axis(y),
+            x: bx,
+            y: by,
+            wx: [wx0, wx1],
+            wy: [wy0, wy1],
         }
     }
 
