@@ -72,6 +72,8 @@ fn child(rel: &str, mode: Mode) {
 }
 
 fn main() {
+    // As the binary does.
+    seamstress::heap::retain_freed_memory();
     let args: Vec<String> = std::env::args().collect();
     if let Some(i) = args.iter().position(|a| a == "--child") {
         let mode = if args[i + 2] == "global" {

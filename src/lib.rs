@@ -6,6 +6,7 @@
 //! [`service`] runs the pipeline behind HTTP.
 
 pub mod bc1;
+pub mod heap;
 pub mod mips;
 pub mod model;
 pub mod pipeline;

@@ -75,6 +75,7 @@ struct ProcessArgs {
 }
 
 fn main() -> ExitCode {
+    seamstress::heap::retain_freed_memory();
     let cli = Cli::parse();
     // A one-shot command stays quiet; a service logs every request and job.
     let default_level = match cli.command {

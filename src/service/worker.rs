@@ -155,6 +155,8 @@ fn execute(app: &Shared, mut job: Job, flag: &AtomicU8) -> Result<JobState, Stor
         engine::run(&bundle, &options, app.cfg.max_texture_size, &mut checkpoint)
     };
     drop(bundle);
+    // The job's working set is free now; hand it back (see `heap`).
+    crate::heap::release_freed_memory();
     match outcome {
         Ok(produced) => {
             if let Some(stop) = stop_of(flag) {
