@@ -252,8 +252,13 @@ pub fn erase(
         let (out, unknowns) = solve(&band, last.as_deref().unwrap_or(input))?;
         solves += 1;
         let growth = grow_band(grid, &band, &movable, &out, input, channels, ratio, tol);
-        tracing::debug!(unknowns, leaks = growth.leaks, "erase band solved");
-        if growth.leaks == 0 || solves >= 4 {
+        tracing::debug!(
+            elapsed_ms = t0.elapsed().as_millis() as u64,
+            unknowns,
+            leaks = growth.leaks,
+            "erase band solved"
+        );
+        let Some(wider) = growth.band.filter(|_| solves < 4) else {
             let reach = band
                 .iter()
                 .zip(&dist)
@@ -266,8 +271,8 @@ pub fn erase(
                 solves,
             };
             return Ok((out, stats));
-        }
-        band = growth.band;
+        };
+        band = wider;
         last = Some(out);
     }
 }
@@ -279,10 +284,14 @@ const MIN_BAND: f64 = 2.0;
 const GROWTH_MARGIN: f64 = 10.0;
 
 struct Growth {
-    band: Vec<bool>,
+    /// The widened band (`None` without leaks).
+    band: Option<Vec<bool>>,
     /// Edge texels whose change may leak more than the tolerance outside.
     leaks: usize,
 }
+
+/// Texels per parallel task of [`grow_band`].
+const GROW_CHUNK: usize = 1 << 14;
 
 /// Widens the band around each edge texel whose implied miss outside (see the
 /// module docs) exceeds `tol`: by as many texels as the decay needs to bring
@@ -302,44 +311,59 @@ fn grow_band(
     let decay_len = -1.0 / ratio.ln();
     // reach[t] ≥ 0: texel t lies within the needed widening of some leak.
     let mut reach = vec![-1i32; w * h];
-    let mut leaks = 0;
-    for (t, _) in band.iter().enumerate().filter(|(_, b)| **b) {
-        let (x, y) = (t % w, t / w);
-        let outside = [
-            (x > 0).then(|| t - 1),
-            (x + 1 < w).then(|| t + 1),
-            (y > 0).then(|| t - w),
-            (y + 1 < h).then(|| t + w),
-        ]
-        .into_iter()
-        .flatten()
-        .any(|s| movable[s] && !band[s]);
-        if !outside {
-            continue;
-        }
-        let change = (0..ch)
-            .map(|c| f64::from((out[t * ch + c] - input[t * ch + c]).abs()))
-            .fold(0.0, f64::max);
-        let leak = change * ratio / (1.0 - ratio * ratio);
-        if leak > tol {
-            leaks += 1;
-        }
-        // Widening next to a leak raises its neighbours' change too: widen
-        // those close to the tolerance as well, with a margin.
-        if leak * GROWTH_MARGIN > tol {
-            reach[t] = ((leak * GROWTH_MARGIN / tol).ln() * decay_len).ceil() as i32 + 1;
-        }
+    let leaks: usize = reach
+        .par_chunks_mut(GROW_CHUNK)
+        .enumerate()
+        .map(|(k, reach)| {
+            let mut leaks = 0;
+            for (i, r) in reach.iter_mut().enumerate() {
+                let t = k * GROW_CHUNK + i;
+                if !band[t] {
+                    continue;
+                }
+                let (x, y) = (t % w, t / w);
+                let outside = [
+                    (x > 0).then(|| t - 1),
+                    (x + 1 < w).then(|| t + 1),
+                    (y > 0).then(|| t - w),
+                    (y + 1 < h).then(|| t + w),
+                ]
+                .into_iter()
+                .flatten()
+                .any(|s| movable[s] && !band[s]);
+                if !outside {
+                    continue;
+                }
+                let change = (0..ch)
+                    .map(|c| f64::from((out[t * ch + c] - input[t * ch + c]).abs()))
+                    .fold(0.0, f64::max);
+                let leak = change * ratio / (1.0 - ratio * ratio);
+                if leak > tol {
+                    leaks += 1;
+                }
+                // Widening next to a leak raises its neighbours' change too:
+                // widen those close to the tolerance as well, with a margin.
+                if leak * GROWTH_MARGIN > tol {
+                    *r = ((leak * GROWTH_MARGIN / tol).ln() * decay_len).ceil() as i32 + 1;
+                }
+            }
+            leaks
+        })
+        .sum();
+    if leaks == 0 {
+        return Growth { band: None, leaks };
     }
-    if leaks > 0 {
-        spread_down(&mut reach, w, h);
-    }
+    spread_down(&mut reach, w, h);
     let band = band
         .iter()
         .zip(&reach)
         .zip(movable)
         .map(|((&b, &r), &m)| b || (m && r >= 0))
         .collect();
-    Growth { band, leaks }
+    Growth {
+        band: Some(band),
+        leaks,
+    }
 }
 
 /// reach[i] = max over j of reach[j] − chebyshev(i, j): two raster passes.
@@ -470,7 +494,12 @@ fn solve_band(
             "multigrid hierarchy built"
         );
         let (x, iterations) = multigrid::solve(&m, &b, ch, x0)?;
-        tracing::debug!(unknowns = n, iterations, "multigrid solve");
+        tracing::debug!(
+            elapsed_ms = t0.elapsed().as_millis() as u64,
+            unknowns = n,
+            iterations,
+            "multigrid solve"
+        );
         x
     };
     let mut out = input.to_vec();
