@@ -25,6 +25,14 @@
 // compiler vectorises, and several arrays share each index.
 #![allow(clippy::needless_range_loop)]
 
+// Inlining: the AVX2 entry points compile only what is inlined into them
+// with AVX2, so optimised builds force every helper in (without it `fast`
+// runs at 0.6× and `default` at 0.55×). Forced everywhere, it also makes
+// three functions of 50 000–60 000 lines of IR each, which at the dev
+// profile's opt-level cost 150 s of a cold build for the library and again
+// for its unit tests; so builds with debug assertions (tests) force only
+// the one-line helpers.
+
 use super::block::{pack565, Block, EXPAND5, EXPAND6};
 use super::fast::{self, Group, GroupEffort, F, LANES};
 use super::Level;
@@ -88,7 +96,7 @@ fn max(a: f32, b: f32) -> f32 {
 
 /// Sum of 16 lanes in a fixed tree order, so results do not depend on how
 /// the compiler vectorises.
-#[inline(always)]
+#[cfg_attr(not(debug_assertions), inline(always))]
 fn hsum(v: &[f32; 16]) -> f32 {
     let mut t8 = [0.0f32; 8];
     for i in 0..8 {
@@ -102,7 +110,7 @@ fn hsum(v: &[f32; 16]) -> f32 {
 }
 
 /// Minimum and maximum of 16 lanes, in a fixed tree order.
-#[inline(always)]
+#[cfg_attr(not(debug_assertions), inline(always))]
 fn hminmax(v: &[f32; 16], lo_in: &[f32; 16]) -> (f32, f32) {
     let mut lo8 = [0.0f32; 8];
     let mut hi8 = [0.0f32; 8];
@@ -161,7 +169,7 @@ impl Texels {
 
     /// Reads texel (x0+i, y0+j) from an interleaved image, replicating the
     /// last column and row for texels past the edge.
-    #[inline(always)]
+    #[cfg_attr(not(debug_assertions), inline(always))]
     pub(crate) fn from_image(
         rgb: &[f32],
         width: usize,
@@ -220,7 +228,7 @@ struct Ends {
 }
 
 impl Ends {
-    #[inline(always)]
+    #[cfg_attr(not(debug_assertions), inline(always))]
     fn values(&self) -> ([f32; 3], [f32; 3]) {
         (
             [
@@ -248,7 +256,7 @@ struct Candidate {
 
 /// Best palette positions for endpoints `a`, `b` (0..255 scale) and the
 /// resulting weighted squared error.
-#[inline(always)]
+#[cfg_attr(not(debug_assertions), inline(always))]
 fn select(t: &Texels, a: [f32; 3], b: [f32; 3]) -> (f32, [f32; 16]) {
     let d = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
     let dd = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
@@ -272,7 +280,7 @@ fn select(t: &Texels, a: [f32; 3], b: [f32; 3]) -> (f32, [f32; 16]) {
     (hsum(&e), pos)
 }
 
-#[inline(always)]
+#[cfg_attr(not(debug_assertions), inline(always))]
 fn eval(t: &Texels, ends: Ends) -> (f32, [f32; 16]) {
     let (a, b) = ends.values();
     select(t, a, b)
@@ -317,7 +325,7 @@ fn nearest_level(tab: &[f32], v: f32) -> u8 {
     }
 }
 
-#[inline(always)]
+#[cfg_attr(not(debug_assertions), inline(always))]
 fn quantize_nearest(a: [f32; 3], b: [f32; 3]) -> Ends {
     Ends {
         a: [
@@ -358,7 +366,7 @@ impl LsSums {
         self.det() > 1e-5 * scale * scale
     }
 
-    #[inline(always)]
+    #[cfg_attr(not(debug_assertions), inline(always))]
     fn solve(&self) -> ([f32; 3], [f32; 3]) {
         let inv = 1.0 / self.det();
         let mut a = [0.0f32; 3];
@@ -385,7 +393,7 @@ struct Stats {
     max: [f32; 3],
 }
 
-#[inline(always)]
+#[cfg_attr(not(debug_assertions), inline(always))]
 fn stats(t: &Texels) -> Stats {
     let w = hsum(&t.w);
     let mut tmp = [0.0f32; 16];
@@ -442,7 +450,7 @@ fn stats(t: &Texels) -> Stats {
 
 /// Principal axis of the weighted covariance by power iteration (not
 /// normalised; zero when the block has no spread).
-#[inline(always)]
+#[cfg_attr(not(debug_assertions), inline(always))]
 fn principal_axis(cov: &[f32; 6], iters: u32) -> [f32; 3] {
     let [xx, xy, xz, yy, yz, zz] = *cov;
     // Start from the covariance row of the widest channel: it is never
@@ -473,7 +481,7 @@ fn principal_axis(cov: &[f32; 6], iters: u32) -> [f32; 3] {
 /// Endpoints at the extremes of the texels' projections onto `axis`,
 /// pulled in by 1/16 of the span (the extremes are rarely worth a palette
 /// entry of their own).
-#[inline(always)]
+#[cfg_attr(not(debug_assertions), inline(always))]
 fn axis_endpoints(t: &Texels, s: &Stats, axis: [f32; 3]) -> ([f32; 3], [f32; 3]) {
     let nn = axis[0] * axis[0] + axis[1] * axis[1] + axis[2] * axis[2];
     if nn <= 0.0 {
@@ -503,7 +511,7 @@ fn axis_endpoints(t: &Texels, s: &Stats, axis: [f32; 3]) -> ([f32; 3], [f32; 3])
 }
 
 /// Least-squares sums for the given positions.
-#[inline(always)]
+#[cfg_attr(not(debug_assertions), inline(always))]
 fn ls_sums(t: &Texels, s: &Stats, pos: &[f32; 16]) -> LsSums {
     let mut wb = [0.0f32; 16];
     let mut wbb = [0.0f32; 16];
@@ -542,7 +550,7 @@ const HALF_STEP6: f32 = 2.5;
 /// by `max_radius` levels either side of the continuous solution) and takes
 /// the best level of the other endpoint for each. Returns the pair and the
 /// quadratic's value (without the constant Σwx²).
-#[inline(always)]
+#[cfg_attr(not(debug_assertions), inline(always))]
 fn best_pair(ch: usize, ls: &LsSums, cont: (f32, f32), max_radius: usize) -> (u8, u8, f32) {
     let tab = levels(ch);
     let half = if ch == 1 { HALF_STEP6 } else { HALF_STEP5 };
@@ -594,7 +602,7 @@ fn best_pair(ch: usize, ls: &LsSums, cont: (f32, f32), max_radius: usize) -> (u8
 }
 
 /// Best 565 endpoints for fixed positions (exact up to `max_radius`).
-#[inline(always)]
+#[cfg_attr(not(debug_assertions), inline(always))]
 fn quantize_for_positions(ls: &LsSums, max_radius: usize) -> Ends {
     let (a, b) = ls.solve();
     let mut ends = Ends {
@@ -611,7 +619,7 @@ fn quantize_for_positions(ls: &LsSums, max_radius: usize) -> Ends {
 
 /// Alternates exact endpoint fitting for fixed positions with exact
 /// re-selection of positions until neither improves the error.
-#[inline(always)]
+#[cfg_attr(not(debug_assertions), inline(always))]
 fn refine(t: &Texels, s: &Stats, cand: &mut Candidate, iters: u32, radius: usize) {
     for _ in 0..iters {
         let ls = ls_sums(t, s, &cand.pos);
@@ -683,7 +691,7 @@ static SOLID5: [[u8; 2]; SOLID_LEN] = solid_table(&LEVELS5_C);
 static SOLID6: [[u8; 2]; SOLID_LEN] = solid_table(&LEVELS6_C);
 
 /// The table entry for channel `ch` at value `v` (0..255 scale).
-#[inline(always)]
+#[cfg_attr(not(debug_assertions), inline(always))]
 pub(crate) fn solid_pair(ch: usize, v: f32) -> [u8; 2] {
     let key = min(max(v * SOLID_RES + 0.5, 0.0), (SOLID_LEN - 1) as f32) as usize;
     if ch == 1 {
@@ -696,7 +704,7 @@ pub(crate) fn solid_pair(ch: usize, v: f32) -> [u8; 2] {
 /// Candidate that paints every texel with one palette entry near the
 /// colour `c` (0..255 scale): the 1/3 mix of a level pair per channel, or a
 /// level itself when that is closer.
-#[inline(always)]
+#[cfg_attr(not(debug_assertions), inline(always))]
 fn solid_candidate(t: &Texels, c: [f32; 3]) -> Candidate {
     let mut ends = Ends {
         a: [0; 3],
@@ -720,7 +728,7 @@ struct Ordering {
     px: [[f32; 17]; 3],
 }
 
-#[inline(always)]
+#[cfg_attr(not(debug_assertions), inline(always))]
 fn ordering(t: &Texels, axis: [f32; 3]) -> Ordering {
     let mut key = [0.0f32; 16];
     for k in 0..16 {
@@ -762,7 +770,7 @@ struct Partition {
 }
 
 impl Partition {
-    #[inline(always)]
+    #[cfg_attr(not(debug_assertions), inline(always))]
     fn positions(&self, ord: &Ordering) -> [f32; 16] {
         let mut pos = [0.0f32; 16];
         for n in 0..16 {
@@ -800,7 +808,7 @@ impl<const N: usize> TopN<N> {
         }
     }
 
-    #[inline(always)]
+    #[cfg_attr(not(debug_assertions), inline(always))]
     fn worst(&self) -> f32 {
         if self.len < N {
             f32::MAX
@@ -809,7 +817,7 @@ impl<const N: usize> TopN<N> {
         }
     }
 
-    #[inline(always)]
+    #[cfg_attr(not(debug_assertions), inline(always))]
     fn push(&mut self, p: Partition) {
         if p.err >= self.worst() {
             return;
@@ -831,7 +839,7 @@ impl<const N: usize> TopN<N> {
 /// Cluster fit: every ordered partition of the sorted texels into the four
 /// palette positions, scored by its continuous least-squares error; the
 /// best `N` are returned.
-#[inline(always)]
+#[cfg_attr(not(debug_assertions), inline(always))]
 fn cluster_fit<const N: usize>(s: &Stats, ord: &Ordering) -> TopN<N> {
     let mut top = TopN::<N>::new();
     let pw = &ord.pw;
@@ -918,7 +926,7 @@ fn step_level(q: u8, d: i8, top: u8) -> Option<u8> {
 /// Steepest-descent search over neighbouring 565 endpoint pairs, with full
 /// re-selection of indices for every pair tried and an exact refit after
 /// every step taken.
-#[inline(always)]
+#[cfg_attr(not(debug_assertions), inline(always))]
 fn local_search(t: &Texels, s: &Stats, cand: &mut Candidate, rounds: u32, radius: usize) {
     for _ in 0..rounds {
         if cand.err <= 0.0 {
@@ -1013,7 +1021,7 @@ pub(crate) fn effort(level: Level) -> Effort {
 }
 
 /// Turns a candidate into a block with c0 > c1 (or c0 = c1, indices 0).
-#[inline(always)]
+#[cfg_attr(not(debug_assertions), inline(always))]
 fn finish(cand: &Candidate) -> Block {
     let ca = pack565(cand.ends.a[0], cand.ends.a[1], cand.ends.a[2]);
     let cb = pack565(cand.ends.b[0], cand.ends.b[1], cand.ends.b[2]);
@@ -1048,7 +1056,7 @@ fn candidate_from_block(t: &Texels, b: &Block) -> Candidate {
 
 /// Encodes one block of texels (0..255 scale) with the given effort,
 /// starting from `start` when given.
-#[inline(always)]
+#[cfg_attr(not(debug_assertions), inline(always))]
 pub(crate) fn encode_texels(t: &Texels, e: &Search, start: Option<Block>) -> Block {
     let mut s = stats(t);
     let unweighted;
@@ -1283,7 +1291,7 @@ pub(crate) fn encode_row(
     encode_row_generic(rgb, width, height, stride, by, row, e);
 }
 
-#[inline(always)]
+#[cfg_attr(not(debug_assertions), inline(always))]
 fn encode_row_generic(
     rgb: &[f32],
     width: usize,

@@ -21,6 +21,9 @@
 // compiler vectorises, and several arrays share each index.
 #![allow(clippy::needless_range_loop)]
 
+// Inlining as in `encode`: forced in optimised builds, for the one-line
+// lane operations only in builds with debug assertions.
+
 use std::ops::{Add, Div, Mul, Sub};
 
 use super::block::Block;
@@ -220,7 +223,7 @@ struct Ends {
 
 impl Group {
     /// Raw values in, clamped to [0,1] (NaN to 0) and scaled to 0..255.
-    #[inline(always)]
+    #[cfg_attr(not(debug_assertions), inline(always))]
     pub(crate) fn sanitize(&mut self) {
         for ch in 0..3 {
             for k in 0..16 {
@@ -234,7 +237,7 @@ impl Group {
     /// Loads the blocks `bx0..bx0+8` of block row `by` (raw values, see
     /// [`Group::sanitize`]); lanes past the row's last block repeat it, and
     /// texels past the image's edge repeat its last row and column.
-    #[inline(always)]
+    #[cfg_attr(not(debug_assertions), inline(always))]
     pub(crate) fn load(
         rgb: &[f32],
         width: usize,
@@ -271,7 +274,7 @@ impl Group {
         g
     }
 
-    #[inline(always)]
+    #[cfg_attr(not(debug_assertions), inline(always))]
     fn load_interior<const S: usize>(&mut self, rgb: &[f32], width: usize, bx0: usize, by: usize) {
         for j in 0..4 {
             let start = ((by * 4 + j) * width + bx0 * 4) * S;
@@ -288,7 +291,7 @@ impl Group {
 }
 
 impl Ends {
-    #[inline(always)]
+    #[cfg_attr(not(debug_assertions), inline(always))]
     fn values(&self) -> ([F; 3], [F; 3]) {
         let mut a = [F::splat(0.0); 3];
         let mut b = [F::splat(0.0); 3];
@@ -302,7 +305,7 @@ impl Ends {
 
 /// Positions (0..=3 along a→b) and weighted squared error for endpoints
 /// with values `a`, `b`.
-#[inline(always)]
+#[cfg_attr(not(debug_assertions), inline(always))]
 fn select<const W: bool>(g: &Group, a: &[F; 3], b: &[F; 3]) -> (F, [F; 16]) {
     let d = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
     let dd = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
@@ -342,7 +345,7 @@ type Best = (Ends, F, [F; 16]);
 /// Least-squares endpoints for the given positions, their 565 levels
 /// chosen exactly for those positions, then re-selected positions and the
 /// error. Lanes whose positions do not pin both endpoints get error MAX.
-#[inline(always)]
+#[cfg_attr(not(debug_assertions), inline(always))]
 fn fit<const W: bool>(g: &Group, wsum: F, sx: &[F; 3], pos: &[F; 16]) -> Option<Best> {
     let zero = F::splat(0.0);
     let one = F::splat(1.0);
@@ -396,7 +399,7 @@ fn fit<const W: bool>(g: &Group, wsum: F, sx: &[F; 3], pos: &[F; 16]) -> Option<
 
 /// Refits the endpoints to the best candidate's positions and keeps the
 /// result where it is better. Returns whether any lane improved.
-#[inline(always)]
+#[cfg_attr(not(debug_assertions), inline(always))]
 fn refit<const W: bool>(g: &Group, wsum: F, sx: &[F; 3], best: &mut Best) -> bool {
     let Some((ends, err, pos)) = fit::<W>(g, wsum, sx, &best.2) else {
         return false;
@@ -410,7 +413,7 @@ fn refit<const W: bool>(g: &Group, wsum: F, sx: &[F; 3], best: &mut Best) -> boo
 /// positions (the one closest to each boundary, from either side), refitting
 /// the endpoints for each move: a cheap stand-in for cluster fit around the
 /// current indices. Returns whether any lane improved.
-#[inline(always)]
+#[cfg_attr(not(debug_assertions), inline(always))]
 fn boundary_round<const W: bool>(g: &Group, wsum: F, sx: &[F; 3], best: &mut Best) -> bool {
     let (av, bv) = best.0.values();
     let d = [bv[0] - av[0], bv[1] - av[1], bv[2] - av[2]];
@@ -492,7 +495,7 @@ const MOVES: [(usize, f32, f32); 24] = {
 
 /// One round of steepest descent over neighbouring 565 endpoint pairs, with
 /// full re-selection for every pair tried. Returns whether any lane moved.
-#[inline(always)]
+#[cfg_attr(not(debug_assertions), inline(always))]
 fn search_round<const W: bool>(g: &Group, best: &mut Best) -> bool {
     let start = best.0;
     let mut step = start;
@@ -525,7 +528,7 @@ fn search_round<const W: bool>(g: &Group, best: &mut Best) -> bool {
 }
 
 /// Keeps, lane by lane, whichever of two candidates has the lower error.
-#[inline(always)]
+#[cfg_attr(not(debug_assertions), inline(always))]
 fn keep_better(best: &mut (Ends, F, [F; 16]), ends: Ends, err: F, pos: [F; 16]) {
     let cur = best.1;
     for ch in 0..3 {
@@ -540,7 +543,7 @@ fn keep_better(best: &mut (Ends, F, [F; 16]), ends: Ends, err: F, pos: [F; 16]) 
 
 /// The best level pair for one channel with fixed positions, scanning two
 /// levels of one end and fitting the other (see `encode::best_pair`).
-#[inline(always)]
+#[cfg_attr(not(debug_assertions), inline(always))]
 #[allow(clippy::too_many_arguments)]
 fn pair(c: Chan, aa: F, ab: F, bb: F, sa: F, sb: F, a_star: F, b_star: F) -> (F, F) {
     // Scan the end whose reach is shorter (bb ≤ aa: scan a).
@@ -590,7 +593,7 @@ fn pair(c: Chan, aa: F, ab: F, bb: F, sa: F, sb: F, a_star: F, b_star: F) -> (F,
 }
 
 /// Encodes a group of blocks. With `W` false the weights are taken as 1.
-#[inline(always)]
+#[cfg_attr(not(debug_assertions), inline(always))]
 pub(crate) fn encode_group<const W: bool>(g: &Group, effort: &GroupEffort) -> [Block; LANES] {
     let one = F::splat(1.0);
     let zero = F::splat(0.0);
