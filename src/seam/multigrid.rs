@@ -33,11 +33,12 @@ use super::system::{Cholesky, SolveError};
 use super::transfer::Transfer;
 
 /// CG stops when the error it leaves is estimated below this (in [0,1]
-/// units: 1e-4 of an 8-bit level, a tenth of the band's tolerance). The
+/// units: 5e-4 of an 8-bit level, half the band's default tolerance, so the
+/// two errors together stay far below any 16-bit step). The
 /// preconditioned iteration contracts the error by a steady ratio ρ per step
 /// (measured as the ratio of successive largest steps), so what remains after
 /// a step of size s is about s·ρ/(1 − ρ).
-const ERROR_TOLERANCE: f64 = 1e-4 / 255.0;
+const ERROR_TOLERANCE: f64 = 5e-4 / 255.0;
 /// The ratio assumed until two steps have been measured, and its ceiling
 /// (above it the estimate would be unreliable; the rule then waits for the
 /// step itself to fall below the tolerance).
