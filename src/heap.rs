@@ -29,3 +29,20 @@ pub fn release_freed_memory() {
         libc::malloc_trim(0);
     }
 }
+
+/// The process's resident memory in MB (0 where /proc is not available),
+/// for the solver's debug log: on a fresh process each new page costs a
+/// fault, so memory is time.
+pub fn resident_mb() -> u64 {
+    #[cfg(target_os = "linux")]
+    {
+        // SAFETY: sysconf only reads a system constant.
+        let page = unsafe { libc::sysconf(libc::_SC_PAGESIZE) }.max(0) as u64;
+        std::fs::read_to_string("/proc/self/statm")
+            .ok()
+            .and_then(|s| s.split_whitespace().nth(1)?.parse::<u64>().ok())
+            .map_or(0, |pages| (pages * page) >> 20)
+    }
+    #[cfg(not(target_os = "linux"))]
+    0
+}

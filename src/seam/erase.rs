@@ -187,6 +187,7 @@ pub fn erase(
     let max_radius = grid.width.max(grid.height);
     let dist = distance_from(grid, &classes.seam, max_radius);
     tracing::debug!(
+        rss_mb = crate::heap::resident_mb(),
         elapsed_ms = t0.elapsed().as_millis() as u64,
         "seam terms and distances"
     );
@@ -241,6 +242,7 @@ pub fn erase(
         .collect();
     drop((reach, jumps));
     tracing::debug!(
+        rss_mb = crate::heap::resident_mb(),
         elapsed_ms = t0.elapsed().as_millis() as u64,
         "first band chosen"
     );
@@ -253,6 +255,7 @@ pub fn erase(
         solves += 1;
         let growth = grow_band(grid, &band, &movable, &out, input, channels, ratio, tol);
         tracing::debug!(
+            rss_mb = crate::heap::resident_mb(),
             elapsed_ms = t0.elapsed().as_millis() as u64,
             unknowns,
             leaks = growth.leaks,
@@ -471,6 +474,7 @@ fn solve_band(
         &weights,
     )?;
     tracing::debug!(
+        rss_mb = crate::heap::resident_mb(),
         elapsed_ms = t0.elapsed().as_millis() as u64,
         "band assembled"
     );
@@ -485,16 +489,19 @@ fn solve_band(
     } else {
         let (nodes, x0) = place_nodes(grid.width, &unknown, n, dist, start, ch);
         tracing::debug!(
+            rss_mb = crate::heap::resident_mb(),
             elapsed_ms = t0.elapsed().as_millis() as u64,
             "multigrid nodes placed"
         );
         let m = Hierarchy::new(a, nodes)?;
         tracing::debug!(
+            rss_mb = crate::heap::resident_mb(),
             elapsed_ms = t0.elapsed().as_millis() as u64,
             "multigrid hierarchy built"
         );
-        let (x, iterations) = multigrid::solve(&m, &b, ch, x0)?;
+        let (x, iterations) = multigrid::solve(&m, b, ch, x0)?;
         tracing::debug!(
+            rss_mb = crate::heap::resident_mb(),
             elapsed_ms = t0.elapsed().as_millis() as u64,
             unknowns = n,
             iterations,

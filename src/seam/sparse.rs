@@ -117,6 +117,19 @@ pub trait Rows: Sync {
     /// Calls `f(column, value)` for each entry of row `i`, in column order.
     fn for_each(&self, i: usize, f: impl FnMut(usize, f64));
 
+    /// Row `i`'s diagonal, off-diagonal value and neighbours (above, left,
+    /// right, below) when it is a five-point stencil row with all four
+    /// neighbours; `None` otherwise, or where the storage does not tell.
+    #[inline]
+    fn full_stencil(&self, _i: usize) -> Option<(f64, f64, [u32; 4])> {
+        None
+    }
+
+    /// Whether [`Self::full_stencil`] can answer `Some` at all.
+    fn has_stencil_rows(&self) -> bool {
+        false
+    }
+
     /// y = A x.
     fn apply(&self, x: &[f64], y: &mut [f64], ch: usize) {
         by_channels!(ch, apply_n(self, x, y))
@@ -132,6 +145,19 @@ pub trait Rows: Sync {
     /// r = b − A x.
     fn residual(&self, b: &[f64], x: &[f64], r: &mut [f64], ch: usize) {
         by_channels!(ch, residual_n(self, b, x, r))
+    }
+
+    /// (b − A x) on the consecutive rows `rows`, into `out`, in the calling
+    /// task (the same bits as [`Self::residual`] on those rows).
+    fn residual_span(
+        &self,
+        rows: std::ops::Range<usize>,
+        b: &[f64],
+        x: &[f64],
+        out: &mut [f64],
+        ch: usize,
+    ) {
+        by_channels!(ch, residual_span_n(self, rows, b, x, out))
     }
 
     /// (b − A z) on the rows `rows`, gathered in their order.
@@ -224,9 +250,17 @@ pub trait Rows: Sync {
         // A row's sum runs in a fixed order whichever task computes it.
         let tasks = rayon::current_num_threads().clamp(1, nc.max(1));
         let per = nc.div_ceil(tasks);
+        let regular = if lattice && self.has_stencil_rows() {
+            regular_rows(self, p)
+        } else {
+            Vec::new()
+        };
         let chunks: Vec<(Vec<usize>, Vec<u32>, Vec<f64>)> = (0..tasks)
             .into_par_iter()
-            .map(|b| self.galerkin_rows(p, (b * per).min(nc)..((b + 1) * per).min(nc), lattice))
+            .map(|b| {
+                let rows = (b * per).min(nc)..((b + 1) * per).min(nc);
+                self.galerkin_rows(p, rows, lattice, &regular)
+            })
             .collect();
         let mut ptr = Vec::with_capacity(nc + 1);
         ptr.push(0);
@@ -252,12 +286,18 @@ pub trait Rows: Sync {
 
     /// Rows `rows` of Pᵀ A P: their lengths, columns and values (not
     /// inlined: a symbol of its own in profiles).
+    ///
+    /// `regular` (empty, or one flag per fine unknown) marks the fine rows
+    /// that are full stencils among lattice neighbours: a coarse lattice row
+    /// whose nine fine rows are all such, with one diagonal, is the tensor
+    /// product of the 1D hats' products in closed form.
     #[inline(never)]
     fn galerkin_rows(
         &self,
         p: &Transfer,
         rows: std::ops::Range<usize>,
         lattice: bool,
+        regular: &[bool],
     ) -> (Vec<usize>, Vec<u32>, Vec<f64>) {
         let mut lens = Vec::with_capacity(rows.len());
         // Bilinear coarsening keeps about nine entries a row.
@@ -270,9 +310,22 @@ pub trait Rows: Sync {
             list.clear();
             let centre = p.placement(k).filter(|_| lattice);
             let (fine, len) = p.fine_of(k);
-            match centre {
-                Some(c) => galerkin_lattice_row(self, p, c, &fine[..len], &mut entries, &mut list),
-                None => {
+            // The centre's stencil, when all nine fine rows share it.
+            let uniform = match centre {
+                Some(_) if len == 9 && !regular.is_empty() => {
+                    self.full_stencil(fine[4].0).filter(|&(d, _, _)| {
+                        fine.iter()
+                            .all(|&(i, _)| regular[i] && self.diagonal(i) == d)
+                    })
+                }
+                _ => None,
+            };
+            match (centre, uniform) {
+                (Some(c), Some((d, off, _))) => uniform_lattice_row(p, c, d, off, &mut list),
+                (Some(c), None) => {
+                    galerkin_lattice_row(self, p, c, &fine[..len], &mut entries, &mut list)
+                }
+                (None, _) => {
                     for &(i, wi) in &fine[..len] {
                         self.for_each(i, |j, aij| {
                             let wa = wi * aij;
@@ -352,6 +405,48 @@ fn galerkin_lattice_row<A: Rows + ?Sized>(
                 (x + (s % W) as u32).wrapping_sub(2),
                 (y + (s / W) as u32).wrapping_sub(2),
             );
+            list.push((lattice_index(p, lx, ly), v));
+        }
+    }
+}
+
+/// Per fine unknown: whether its row is a full five-point stencil whose four
+/// neighbours are the lattice nodes beside it (see [`Rows::galerkin_rows`]).
+pub(super) fn regular_rows<A: Rows + ?Sized>(a: &A, p: &Transfer) -> Vec<bool> {
+    (0..a.n())
+        .into_par_iter()
+        .with_min_len(CHUNK)
+        .map(|i| {
+            a.full_stencil(i)
+                .is_some_and(|(_, _, nb)| p.beside_on_lattice(i, nb))
+        })
+        .collect()
+}
+
+/// The Galerkin row of the coarse lattice node at (x, y) when its nine fine
+/// rows are stencils `d` on the diagonal and `off` to each lattice
+/// neighbour. With h = (½, 1, ½) the 1D hat, hᵀh gives 3/2 (same node) and
+/// 1/4 (next node), and hᵀSh, S the sum of the two 1D neighbours, gives 2
+/// and 1; the 2D stencil is d·(hᵀh ⊗ hᵀh) + off·(hᵀSh ⊗ hᵀh + hᵀh ⊗ hᵀSh).
+#[inline]
+fn uniform_lattice_row(
+    p: &Transfer,
+    [x, y]: [u32; 2],
+    d: f64,
+    off: f64,
+    list: &mut Vec<(u32, f64)>,
+) {
+    let centre = 2.25 * d + 6.0 * off;
+    let side = 0.375 * d + 2.0 * off;
+    let corner = 0.0625 * d + 0.5 * off;
+    for dy in 0..3u32 {
+        for dx in 0..3u32 {
+            let v = match (dx == 1, dy == 1) {
+                (true, true) => centre,
+                (true, false) | (false, true) => side,
+                (false, false) => corner,
+            };
+            let (lx, ly) = ((x + dx).wrapping_sub(1), (y + dy).wrapping_sub(1));
             list.push((lattice_index(p, lx, ly), v));
         }
     }
@@ -447,6 +542,21 @@ fn residual_n<const C: usize>(a: &(impl Rows + ?Sized), b: &[f64], x: &[f64], r:
                 }
             }
         });
+}
+
+fn residual_span_n<const C: usize>(
+    a: &(impl Rows + ?Sized),
+    rows: std::ops::Range<usize>,
+    b: &[f64],
+    x: &[f64],
+    r: &mut [f64],
+) {
+    for (i, ri) in rows.zip(r.chunks_exact_mut(C)) {
+        let s = row_product::<C>(a, i, x);
+        for c in 0..C {
+            ri[c] = b[i * C + c] - s[c];
+        }
+    }
 }
 
 fn residual_rows_n<const C: usize>(

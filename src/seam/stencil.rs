@@ -223,6 +223,22 @@ impl Rows for StencilMatrix {
         }
     }
 
+    #[inline]
+    fn full_stencil(&self, i: usize) -> Option<(f64, f64, [u32; 4])> {
+        let full = self.stored[i] == NONE
+            && self.sides[i] == LEFT | RIGHT
+            && self.up[i] != NONE
+            && self.down[i] != NONE;
+        full.then(|| {
+            let nb = [self.up[i], i as u32 - 1, i as u32 + 1, self.down[i]];
+            (self.diag[i], self.off, nb)
+        })
+    }
+
+    fn has_stencil_rows(&self) -> bool {
+        true
+    }
+
     unsafe fn gauss_seidel_raw(
         &self,
         rows: &[u32],

@@ -9,7 +9,7 @@
 use rayon::prelude::*;
 
 use super::multigrid::Node;
-use super::sparse::by_channels;
+use super::sparse::{by_channels, Rows};
 
 /// No unknown at a lattice point; in a node's place: not on the lattice.
 const NONE: u32 = u32::MAX;
@@ -192,6 +192,20 @@ impl Transfer {
         }
     }
 
+    /// Whether fine unknown `i` is a lattice node and `nb` (above, left,
+    /// right, below) are the lattice nodes beside it.
+    #[inline]
+    pub fn beside_on_lattice(&self, i: usize, nb: [u32; 4]) -> bool {
+        let [x, y] = self.fine_at[i];
+        if x == NONE || x == 0 || y == 0 {
+            return false;
+        }
+        let at = [[x, y - 1], [x - 1, y], [x + 1, y], [x, y + 1]];
+        nb.iter()
+            .zip(at)
+            .all(|(&j, xy)| self.fine_at.get(j as usize) == Some(&xy))
+    }
+
     /// The coarse unknown at lattice point (x, y); `None` if there is none.
     #[inline]
     pub fn coarse_at_point(&self, x: u32, y: u32) -> Option<usize> {
@@ -252,6 +266,64 @@ impl Transfer {
                     o.copy_from_slice(&s);
                 }
             });
+    }
+
+    /// rc = Pᵀ (r − A z), without the fine residual as a whole: each task
+    /// computes the span of fine rows its coarse unknowns read (coarse
+    /// unknowns are numbered in the order fine ones first reach them, so a
+    /// run of them reads a run of fine rows, give or take two lattice rows)
+    /// and restricts from there. The same bits as [`Self::restrict`] on the
+    /// residual, one pass and one fine vector less.
+    pub fn restrict_residual<A: Rows>(
+        &self,
+        a: &A,
+        r: &[f64],
+        z: &[f64],
+        rc: &mut [f64],
+        ch: usize,
+    ) {
+        by_channels!(ch, self.restrict_residual_n(a, r, z, rc))
+    }
+
+    fn restrict_residual_n<const C: usize>(
+        &self,
+        a: &impl Rows,
+        r: &[f64],
+        z: &[f64],
+        rc: &mut [f64],
+    ) {
+        type Fine = ([(usize, f64); 9], usize);
+        rc.par_chunks_mut(CHUNK * C).enumerate().for_each_init(
+            || (Vec::<Fine>::new(), Vec::<f64>::new()),
+            |(fines, res), (b, out)| {
+                let first = b * CHUNK;
+                fines.clear();
+                fines.extend((first..first + out.len() / C).map(|k| self.fine_of(k)));
+                let (mut lo, mut hi) = (usize::MAX, 0);
+                for (fine, len) in fines.iter() {
+                    for &(i, _) in &fine[..*len] {
+                        lo = lo.min(i);
+                        hi = hi.max(i);
+                    }
+                }
+                if lo > hi {
+                    out.fill(0.0);
+                    return;
+                }
+                res.resize((hi + 1 - lo) * C, 0.0);
+                a.residual_span(lo..hi + 1, r, z, res, C);
+                for (o, (fine, len)) in out.chunks_exact_mut(C).zip(fines.iter()) {
+                    let mut s = [0.0f64; C];
+                    for &(i, w) in &fine[..*len] {
+                        let ri = &res[(i - lo) * C..(i - lo + 1) * C];
+                        for c in 0..C {
+                            s[c] += w * ri[c];
+                        }
+                    }
+                    o.copy_from_slice(&s);
+                }
+            },
+        );
     }
 
     /// z += P zc.
@@ -326,5 +398,57 @@ mod tests {
         let lhs: f64 = z.iter().zip(&r).map(|(a, b)| a * b).sum();
         let rhs: f64 = zc.iter().zip(&rc).map(|(a, b)| a * b).sum();
         assert!((lhs - rhs).abs() < 1e-12);
+    }
+
+    #[test]
+    fn fused_restriction_of_the_residual_matches_the_two_passes() {
+        // A lattice taller than one parallel task of coarse rows, with holes
+        // and exact nodes, under a matrix that also couples distant rows.
+        let mut nodes = Vec::new();
+        for y in 0..130u32 {
+            for x in 0..300u32 {
+                if (x * 7 + y * 3) % 11 != 0 {
+                    nodes.push(Node::Lattice(x, y));
+                }
+                if (x + y) % 97 == 0 {
+                    nodes.push(Node::Exact);
+                }
+            }
+        }
+        let n = nodes.len();
+        let mut rows = vec![std::collections::BTreeMap::<u32, f64>::new(); n];
+        for i in 0..n {
+            *rows[i].entry(i as u32).or_default() += 5.0;
+            for j in [i + 1, i + 300, (i * 7919) % n] {
+                if j < n && j != i {
+                    let v = -(((i + j) % 5) as f64) * 0.25 - 0.1;
+                    *rows[i].entry(j as u32).or_default() += v;
+                    *rows[j].entry(i as u32).or_default() += v;
+                    *rows[i].entry(i as u32).or_default() -= v;
+                    *rows[j].entry(j as u32).or_default() -= v;
+                }
+            }
+        }
+        let (mut ptr, mut col, mut val) = (vec![0], Vec::new(), Vec::new());
+        for row in &rows {
+            for (&j, &v) in row {
+                col.push(j);
+                val.push(v);
+            }
+            ptr.push(col.len());
+        }
+        let a = crate::seam::sparse::SymCsr::from_parts(ptr, col, val).unwrap();
+        let (p, _) = Transfer::coarsen(&nodes);
+        assert!(p.coarse > CHUNK, "several tasks");
+        let ch = 3;
+        let r: Vec<f64> = (0..n * ch).map(|i| (i as f64 * 0.37).sin()).collect();
+        let z: Vec<f64> = (0..n * ch).map(|i| (i as f64 * 0.11).cos()).collect();
+        let mut res = vec![0.0; n * ch];
+        a.residual(&r, &z, &mut res, ch);
+        let mut two = vec![0.0; p.coarse * ch];
+        p.restrict(&res, &mut two, ch);
+        let mut fused = vec![1.0; p.coarse * ch];
+        p.restrict_residual(&a, &r, &z, &mut fused, ch);
+        assert_eq!(two, fused);
     }
 }
