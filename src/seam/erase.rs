@@ -170,7 +170,12 @@ pub fn erase(
 ) -> Result<(Vec<f32>, EraseStats), EraseError> {
     let w = &opts.weights;
     let t0 = std::time::Instant::now();
-    let mut terms = SeamTerms::new(grid, seams, w, input, channels);
+    let max_radius = grid.width.max(grid.height);
+    // Both run on one thread each: side by side they take the time of one.
+    let (mut terms, dist) = rayon::join(
+        || SeamTerms::new(grid, seams, w, input, channels),
+        || distance_from(grid, &classes.seam, max_radius),
+    );
     let jumps = std::mem::take(&mut terms.jumps);
     if terms.points.is_empty() {
         return Ok((input.to_vec(), EraseStats::default()));
@@ -184,8 +189,6 @@ pub fn erase(
         .map(|(&i, &f)| i || f)
         .collect();
 
-    let max_radius = grid.width.max(grid.height);
-    let dist = distance_from(grid, &classes.seam, max_radius);
     tracing::debug!(
         rss_mb = crate::heap::resident_mb(),
         elapsed_ms = t0.elapsed().as_millis() as u64,
@@ -370,45 +373,39 @@ fn grow_band(
 }
 
 /// reach[i] = max over j of reach[j] − chebyshev(i, j): two raster passes.
+///
+/// Each pass takes a row at a time: first what the finished row before it
+/// gives (three neighbours each, no dependence along the row, so the loop
+/// vectorises), then the one running maximum along the row.
 fn spread_down(reach: &mut [i32], w: usize, h: usize) {
+    if w == 0 {
+        return;
+    }
+    let from_row = |row: &mut [i32], prev: &[i32]| {
+        for (x, r) in row.iter_mut().enumerate() {
+            let left = prev[x.saturating_sub(1)];
+            let right = prev[(x + 1).min(w - 1)];
+            *r = (*r).max(left.max(prev[x]).max(right) - 1);
+        }
+    };
     for y in 0..h {
-        for x in 0..w {
-            let i = y * w + x;
-            let mut m = reach[i];
-            if x > 0 {
-                m = m.max(reach[i - 1] - 1);
-            }
-            if y > 0 {
-                let up = i - w;
-                m = m.max(reach[up] - 1);
-                if x > 0 {
-                    m = m.max(reach[up - 1] - 1);
-                }
-                if x + 1 < w {
-                    m = m.max(reach[up + 1] - 1);
-                }
-            }
-            reach[i] = m;
+        let (before, rest) = reach.split_at_mut(y * w);
+        let row = &mut rest[..w];
+        if y > 0 {
+            from_row(row, &before[(y - 1) * w..]);
+        }
+        for x in 1..w {
+            row[x] = row[x].max(row[x - 1] - 1);
         }
     }
     for y in (0..h).rev() {
-        for x in (0..w).rev() {
-            let i = y * w + x;
-            let mut m = reach[i];
-            if x + 1 < w {
-                m = m.max(reach[i + 1] - 1);
-            }
-            if y + 1 < h {
-                let down = i + w;
-                m = m.max(reach[down] - 1);
-                if x + 1 < w {
-                    m = m.max(reach[down + 1] - 1);
-                }
-                if x > 0 {
-                    m = m.max(reach[down - 1] - 1);
-                }
-            }
-            reach[i] = m;
+        let (head, after) = reach.split_at_mut((y + 1) * w);
+        let row = &mut head[y * w..];
+        if y + 1 < h {
+            from_row(row, &after[..w]);
+        }
+        for x in (0..w - 1).rev() {
+            row[x] = row[x].max(row[x + 1] - 1);
         }
     }
 }
@@ -463,51 +460,54 @@ fn solve_band(
         free_anchor: change * 1e-6,
         grad: w.grad,
     };
-    let (a, b) = assemble(
-        grid,
-        input,
-        channels,
-        classes,
-        &terms.points,
-        &unknown,
-        n,
-        &weights,
-    )?;
-    tracing::debug!(
-        rss_mb = crate::heap::resident_mb(),
-        elapsed_ms = t0.elapsed().as_millis() as u64,
-        "band assembled"
-    );
     let direct = match solver {
         Solver::Auto => n <= DIRECT_LIMIT,
         Solver::Direct => true,
         Solver::Iterative => false,
     };
     let ch = channels;
-    let x = if direct {
-        Cholesky::new(&a.to_csr()?.to_faer())?.solve_interleaved(&b, ch)
-    } else {
-        let (nodes, x0) = place_nodes(grid.width, &unknown, n, dist, start, ch);
-        tracing::debug!(
-            rss_mb = crate::heap::resident_mb(),
-            elapsed_ms = t0.elapsed().as_millis() as u64,
-            "multigrid nodes placed"
-        );
-        let m = Hierarchy::new(a, nodes)?;
-        tracing::debug!(
-            rss_mb = crate::heap::resident_mb(),
-            elapsed_ms = t0.elapsed().as_millis() as u64,
-            "multigrid hierarchy built"
-        );
-        let (x, iterations) = multigrid::solve(&m, b, ch, x0)?;
-        tracing::debug!(
-            rss_mb = crate::heap::resident_mb(),
-            elapsed_ms = t0.elapsed().as_millis() as u64,
-            unknowns = n,
-            iterations,
-            "multigrid solve"
-        );
-        x
+    // The seam entries are summed on one thread; the multigrid's node
+    // placement, which needs only the band, takes the other.
+    let (assembled, placed) = rayon::join(
+        || {
+            assemble(
+                grid,
+                input,
+                channels,
+                classes,
+                &terms.points,
+                &unknown,
+                n,
+                &weights,
+            )
+        },
+        || (!direct).then(|| place_nodes(grid.width, &unknown, n, dist, start, ch)),
+    );
+    let (a, b) = assembled?;
+    tracing::debug!(
+        rss_mb = crate::heap::resident_mb(),
+        elapsed_ms = t0.elapsed().as_millis() as u64,
+        "band assembled"
+    );
+    let x = match placed {
+        None => Cholesky::new(&a.to_csr()?.to_faer())?.solve_interleaved(&b, ch),
+        Some((nodes, x0)) => {
+            let m = Hierarchy::new(a, nodes)?;
+            tracing::debug!(
+                rss_mb = crate::heap::resident_mb(),
+                elapsed_ms = t0.elapsed().as_millis() as u64,
+                "multigrid hierarchy built"
+            );
+            let (x, iterations) = multigrid::solve(&m, b, ch, x0)?;
+            tracing::debug!(
+                rss_mb = crate::heap::resident_mb(),
+                elapsed_ms = t0.elapsed().as_millis() as u64,
+                unknowns = n,
+                iterations,
+                "multigrid solve"
+            );
+            x
+        }
     };
     let mut out = input.to_vec();
     out.par_chunks_mut(ch)

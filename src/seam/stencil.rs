@@ -197,7 +197,9 @@ impl Rows for StencilMatrix {
         self.diag[i]
     }
 
-    #[inline]
+    // Forced in optimised builds: every kernel's row loop calls it, and a
+    // call per row costs more than the row.
+    #[cfg_attr(not(debug_assertions), inline(always))]
     fn for_each(&self, i: usize, mut f: impl FnMut(usize, f64)) {
         let k = self.stored[i];
         if k != NONE {
