@@ -445,9 +445,9 @@ fn dots<const C: usize>(u: &[f64], v: &[f64]) -> [f64; 4] {
 /// Solves A x = b (`ch` ≤ 4 interleaved channels) by CG preconditioned with
 /// one V-cycle of `m`, from the guess `x0`. Returns x and the iteration count.
 ///
-/// `b` is taken by value and freed once the first residual holds what CG
-/// needs of it: on a 2048² band each vector is about 50 MB, and each
-/// megabyte a process touches for the first time costs a page fault per page.
+/// `b` is taken by value and becomes the residual: on a 2048² band each
+/// vector is about 50 MB, and each megabyte a process touches for the first
+/// time costs a page fault per page.
 pub fn solve(
     m: &Hierarchy,
     b: Vec<f64>,
@@ -466,10 +466,9 @@ fn solve_n<const C: usize>(
     let a = &m.fine;
     let n = a.n();
     let mut x = x0;
-    let mut r = vec![0.0; n * ch];
-    a.residual(&b, &x, &mut r, ch);
     let bb = dots::<C>(&b, &b);
-    drop(b);
+    let mut r = b;
+    a.residual_in_place(&mut r, &x, ch);
     let mut ws = m.workspace(ch);
     // `zq` holds the preconditioned residual z, and A p in its turn: A p is
     // spent on updating x and r before the next V-cycle writes z.

@@ -147,6 +147,11 @@ pub trait Rows: Sync {
         by_channels!(ch, residual_n(self, b, x, r))
     }
 
+    /// b ← b − A x.
+    fn residual_in_place(&self, b: &mut [f64], x: &[f64], ch: usize) {
+        by_channels!(ch, residual_in_place_n(self, b, x))
+    }
+
     /// (b − A x) on the consecutive rows `rows`, into `out`, in the calling
     /// task (the same bits as [`Self::residual`] on those rows).
     fn residual_span(
@@ -259,14 +264,17 @@ pub trait Rows: Sync {
             .into_par_iter()
             .map(|b| {
                 let rows = (b * per).min(nc)..((b + 1) * per).min(nc);
-                self.galerkin_rows(p, rows, lattice, &regular)
+                // Room for every row in the first part: the others are appended to it.
+                let reserve = if b == 0 { nc } else { rows.len() };
+                self.galerkin_rows(p, rows, lattice, &regular, reserve)
             })
             .collect();
         let mut ptr = Vec::with_capacity(nc + 1);
         ptr.push(0);
         let total: usize = chunks.iter().map(|c| c.1.len()).sum();
-        // The first part's arrays grow into the whole (a large reallocation
-        // remaps its pages instead of copying them), so only the rest is copied.
+        // The first part's arrays were reserved for the whole (see
+        // `galerkin_rows`), so only the rest is copied, and into pages that
+        // no earlier array has touched.
         let mut chunks = chunks.into_iter();
         let (lens, mut col, mut val) = chunks.next().unwrap_or_default();
         col.reserve_exact(total - col.len());
@@ -285,7 +293,8 @@ pub trait Rows: Sync {
     }
 
     /// Rows `rows` of Pᵀ A P: their lengths, columns and values (not
-    /// inlined: a symbol of its own in profiles).
+    /// inlined: a symbol of its own in profiles), with room for `reserve`
+    /// rows in the arrays.
     ///
     /// `regular` (empty, or one flag per fine unknown) marks the fine rows
     /// that are full stencils among lattice neighbours: a coarse lattice row
@@ -298,11 +307,13 @@ pub trait Rows: Sync {
         rows: std::ops::Range<usize>,
         lattice: bool,
         regular: &[bool],
+        reserve: usize,
     ) -> (Vec<usize>, Vec<u32>, Vec<f64>) {
         let mut lens = Vec::with_capacity(rows.len());
-        // Bilinear coarsening keeps about nine entries a row.
-        let mut out_col = Vec::with_capacity(rows.len() * 10);
-        let mut out_val = Vec::with_capacity(rows.len() * 10);
+        // Bilinear coarsening keeps about nine entries a row. Reserved
+        // memory that is never written is never faulted in either.
+        let mut out_col = Vec::with_capacity(reserve * 10);
+        let mut out_val = Vec::with_capacity(reserve * 10);
         let mut list: Vec<(u32, f64)> = Vec::new();
         let mut entries: Vec<(usize, f64)> = Vec::new();
         for k in rows {
@@ -539,6 +550,19 @@ fn residual_n<const C: usize>(a: &(impl Rows + ?Sized), b: &[f64], x: &[f64], r:
                 let s = row_product::<C>(a, i, x);
                 for c in 0..C {
                     ri[c] = b[i * C + c] - s[c];
+                }
+            }
+        });
+}
+
+fn residual_in_place_n<const C: usize>(a: &(impl Rows + ?Sized), b: &mut [f64], x: &[f64]) {
+    b.par_chunks_mut(CHUNK * C)
+        .enumerate()
+        .for_each(|(blk, bs)| {
+            for (k, bi) in bs.chunks_exact_mut(C).enumerate() {
+                let s = row_product::<C>(a, blk * CHUNK + k, x);
+                for c in 0..C {
+                    bi[c] -= s[c];
                 }
             }
         });
