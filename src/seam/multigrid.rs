@@ -90,12 +90,6 @@ impl Hierarchy {
         let mut exact = Vec::new();
         let mut sweeps = Vec::new();
         loop {
-            let tl = std::time::Instant::now();
-            sweeps.push(match coarse.last() {
-                Some(a) => Sweep::new(a, &nodes),
-                None => Sweep::new(&fine, &nodes),
-            });
-            let sweep_ms = tl.elapsed().as_millis() as u64;
             let exact_rows: Vec<u32> = nodes
                 .iter()
                 .enumerate()
@@ -112,9 +106,22 @@ impl Hierarchy {
             if lattice <= COARSEST_LATTICE.max(exact_count) {
                 break;
             }
-            let tl = std::time::Instant::now();
-            let (transfer, next) = Transfer::coarsen(&nodes);
-            let coarsen_ms = tl.elapsed().as_millis() as u64;
+            // Both walk the level's rows on one thread: side by side.
+            let (((transfer, next), coarsen_ms), (sweep, sweep_ms)) = rayon::join(
+                || {
+                    let tl = std::time::Instant::now();
+                    (Transfer::coarsen(&nodes), tl.elapsed().as_millis() as u64)
+                },
+                || {
+                    let tl = std::time::Instant::now();
+                    let sweep = match coarse.last() {
+                        Some(a) => Sweep::new(a, &nodes),
+                        None => Sweep::new(&fine, &nodes),
+                    };
+                    (sweep, tl.elapsed().as_millis() as u64)
+                },
+            );
+            sweeps.push(sweep);
             let tl = std::time::Instant::now();
             let ac = match coarse.last() {
                 Some(a) => a.galerkin(&transfer, true)?,
@@ -135,7 +142,6 @@ impl Hierarchy {
         }
         let galerkin = t.elapsed();
         exact.pop();
-        sweeps.pop();
         // Hat functions of neighbouring lattice nodes can coincide on a lone
         // texel at a ragged band edge, which leaves the Galerkin operator
         // singular. A relative diagonal shift keeps the coarsest factor
