@@ -89,6 +89,8 @@ impl Hierarchy {
         let mut nodes = nodes;
         let mut exact = Vec::new();
         let mut sweeps = Vec::new();
+        // Which rows of the last level have the closed form (see `TensorRows`).
+        let mut tensor = None;
         loop {
             let exact_rows: Vec<u32> = nodes
                 .iter()
@@ -123,10 +125,11 @@ impl Hierarchy {
             );
             sweeps.push(sweep);
             let tl = std::time::Instant::now();
-            let ac = match coarse.last() {
-                Some(a) => a.galerkin(&transfer, true)?,
-                None => fine.galerkin(&transfer, true)?,
+            let (ac, next_tensor) = match coarse.last() {
+                Some(a) => a.galerkin_with(&transfer, true, tensor.as_ref())?,
+                None => fine.galerkin_with(&transfer, true, None)?,
             };
+            tensor = next_tensor;
             tracing::debug!(
                 rss_mb = crate::heap::resident_mb(),
                 sweep_ms,
@@ -623,19 +626,28 @@ mod tests {
 
     #[test]
     fn closed_form_rows_equal_the_general_triple_product() {
-        let (a, nodes) = problem(40, 30);
-        let (p, _) = Transfer::coarsen(&nodes);
+        let (a, nodes) = problem(80, 60);
+        let (p, coarse_nodes) = Transfer::coarsen(&nodes);
         let fine = StencilMatrix::from_csr(&a, -1.0).unwrap();
-        let regular = super::super::sparse::regular_rows(&fine, &p);
+        let tensor = super::super::sparse::stencil_tensor_rows(&fine, &p);
         // Most of the lattice's interior takes the closed form.
-        assert!(regular.iter().filter(|r| **r).count() > 30 * 20);
-        let fast = fine.galerkin(&p, true).unwrap();
+        assert!(tensor.d.iter().filter(|d| !d.is_nan()).count() > 30 * 20);
+        let (fast, coarse_tensor) = fine.galerkin_with(&p, true, None).unwrap();
         let general = a.galerkin(&p, false).unwrap();
-        assert_eq!(fast.ptr, general.ptr);
-        assert_eq!(fast.col, general.col);
-        for (x, y) in fast.val.iter().zip(&general.val) {
-            assert!((x - y).abs() <= 1e-12 * x.abs().max(1.0), "{x} vs {y}");
-        }
+        let same = |fast: &SymCsr, general: &SymCsr| {
+            assert_eq!(fast.ptr, general.ptr);
+            assert_eq!(fast.col, general.col);
+            for (x, y) in fast.val.iter().zip(&general.val) {
+                assert!((x - y).abs() <= 1e-12 * x.abs().max(1.0), "{x} vs {y}");
+            }
+        };
+        same(&fast, &general);
+        // And one level further, from the closed-form rows of the first.
+        let coarse_tensor = coarse_tensor.expect("tensor rows carried down");
+        assert!(coarse_tensor.d.iter().filter(|d| !d.is_nan()).count() > 10 * 5);
+        let (p2, _) = Transfer::coarsen(&coarse_nodes);
+        let (fast2, _) = fast.galerkin_with(&p2, true, Some(&coarse_tensor)).unwrap();
+        same(&fast2, &general.galerkin(&p2, false).unwrap());
     }
 
     #[test]

@@ -249,26 +249,49 @@ pub trait Rows: Sync {
     /// an accumulator over all coarse unknowns; rows off the lattice (and
     /// every row without `lattice`) sum into a list that is sorted once.
     fn galerkin(&self, p: &Transfer, lattice: bool) -> Result<SymCsr, SolveError> {
+        Ok(self.galerkin_with(p, lattice, None)?.0)
+    }
+
+    /// [`Self::galerkin`], given which fine rows have the tensor form (for a
+    /// matrix with stencil rows it finds them itself), and returning which
+    /// coarse rows have it: their next Galerkin rows are in closed form too.
+    fn galerkin_with(
+        &self,
+        p: &Transfer,
+        lattice: bool,
+        tensor: Option<&TensorRows>,
+    ) -> Result<(SymCsr, Option<TensorRows>), SolveError> {
         let nc = p.coarse;
         // One task per thread: a few large parts are handed back to the
         // system once joined, where many small ones would stay in the heap.
         // A row's sum runs in a fixed order whichever task computes it.
         let tasks = rayon::current_num_threads().clamp(1, nc.max(1));
         let per = nc.div_ceil(tasks);
-        let regular = if lattice && self.has_stencil_rows() {
-            regular_rows(self, p)
-        } else {
-            Vec::new()
+        let own = match tensor {
+            None if lattice && self.has_stencil_rows() => Some(stencil_tensor_rows(self, p)),
+            _ => None,
         };
-        let chunks: Vec<(Vec<usize>, Vec<u32>, Vec<f64>)> = (0..tasks)
+        let tensor = if lattice {
+            tensor.or(own.as_ref())
+        } else {
+            None
+        };
+        let chunks: Vec<GalerkinPart> = (0..tasks)
             .into_par_iter()
             .map(|b| {
                 let rows = (b * per).min(nc)..((b + 1) * per).min(nc);
                 // Room for every row in the first part: the others are appended to it.
                 let reserve = if b == 0 { nc } else { rows.len() };
-                self.galerkin_rows(p, rows, lattice, &regular, reserve)
+                self.galerkin_rows(p, rows, lattice, tensor, reserve)
             })
             .collect();
+        let coarse_tensor = tensor.map(|t| TensorRows {
+            d: chunks.iter().flat_map(|c| c.3.iter().copied()).collect(),
+            off: t.off,
+            a: coarsen_1d(t.a),
+            b: coarsen_1d(t.b),
+        });
+        drop(own);
         let mut ptr = Vec::with_capacity(nc + 1);
         ptr.push(0);
         let total: usize = chunks.iter().map(|c| c.1.len()).sum();
@@ -276,63 +299,65 @@ pub trait Rows: Sync {
         // `galerkin_rows`), so only the rest is copied, and into pages that
         // no earlier array has touched.
         let mut chunks = chunks.into_iter();
-        let (lens, mut col, mut val) = chunks.next().unwrap_or_default();
+        let (lens, mut col, mut val, _) = chunks.next().unwrap_or_default();
         col.reserve_exact(total - col.len());
         val.reserve_exact(total - val.len());
         for l in lens {
             ptr.push(ptr.last().copied().unwrap_or(0) + l);
         }
-        for (lens, c, v) in chunks {
+        for (lens, c, v, _) in chunks {
             for l in lens {
                 ptr.push(ptr.last().copied().unwrap_or(0) + l);
             }
             col.extend(c);
             val.extend(v);
         }
-        SymCsr::from_parts(ptr, col, val)
+        Ok((SymCsr::from_parts(ptr, col, val)?, coarse_tensor))
     }
 
     /// Rows `rows` of Pᵀ A P: their lengths, columns and values (not
     /// inlined: a symbol of its own in profiles), with room for `reserve`
-    /// rows in the arrays.
+    /// rows in the arrays; and per row its `d` if it has the tensor form.
     ///
-    /// `regular` (empty, or one flag per fine unknown) marks the fine rows
-    /// that are full stencils among lattice neighbours: a coarse lattice row
-    /// whose nine fine rows are all such, with one diagonal, is the tensor
-    /// product of the 1D hats' products in closed form.
+    /// A coarse lattice row whose nine fine rows all have the tensor form
+    /// (`tensor`), with one `d`, has it too, and is written in closed form.
     #[inline(never)]
     fn galerkin_rows(
         &self,
         p: &Transfer,
         rows: std::ops::Range<usize>,
         lattice: bool,
-        regular: &[bool],
+        tensor: Option<&TensorRows>,
         reserve: usize,
-    ) -> (Vec<usize>, Vec<u32>, Vec<f64>) {
+    ) -> GalerkinPart {
         let mut lens = Vec::with_capacity(rows.len());
+        let mut forms = Vec::with_capacity(if tensor.is_some() { rows.len() } else { 0 });
         // Bilinear coarsening keeps about nine entries a row. Reserved
         // memory that is never written is never faulted in either.
         let mut out_col = Vec::with_capacity(reserve * 10);
         let mut out_val = Vec::with_capacity(reserve * 10);
         let mut list: Vec<(u32, f64)> = Vec::new();
         let mut entries: Vec<(usize, f64)> = Vec::new();
+        let coarse = tensor.map(|t| (coarsen_1d(t.a), coarsen_1d(t.b), t.off));
         for k in rows {
             let before = out_col.len();
             list.clear();
             let centre = p.placement(k).filter(|_| lattice);
             let (fine, len) = p.fine_of(k);
-            // The centre's stencil, when all nine fine rows share it.
-            let uniform = match centre {
-                Some(_) if len == 9 && !regular.is_empty() => {
-                    self.full_stencil(fine[4].0).filter(|&(d, _, _)| {
-                        fine.iter()
-                            .all(|&(i, _)| regular[i] && self.diagonal(i) == d)
-                    })
+            // The rows' common d, when all nine have the tensor form (NaN
+            // marks the others, and equals nothing).
+            let uniform = match (centre, tensor) {
+                (Some(_), Some(t)) if len == 9 => {
+                    let d = t.d[fine[4].0];
+                    fine.iter().all(|&(i, _)| t.d[i] == d).then_some(d)
                 }
                 _ => None,
             };
-            match (centre, uniform) {
-                (Some(c), Some((d, off, _))) => uniform_lattice_row(p, c, d, off, &mut list),
+            if tensor.is_some() {
+                forms.push(uniform.unwrap_or(f64::NAN));
+            }
+            match (centre, uniform.zip(coarse)) {
+                (Some(c), Some((d, (a, b, off)))) => tensor_row(p, c, d, off, a, b, &mut list),
                 (Some(c), None) => {
                     galerkin_lattice_row(self, p, c, &fine[..len], &mut entries, &mut list)
                 }
@@ -357,7 +382,7 @@ pub trait Rows: Sync {
             }
             lens.push(out_col.len() - before);
         }
-        (lens, out_col, out_val)
+        (lens, out_col, out_val, forms)
     }
 }
 
@@ -421,42 +446,71 @@ fn galerkin_lattice_row<A: Rows + ?Sized>(
     }
 }
 
-/// Per fine unknown: whether its row is a full five-point stencil whose four
-/// neighbours are the lattice nodes beside it (see [`Rows::galerkin_rows`]).
-pub(super) fn regular_rows<A: Rows + ?Sized>(a: &A, p: &Transfer) -> Vec<bool> {
-    (0..a.n())
-        .into_par_iter()
-        .with_min_len(CHUNK)
-        .map(|i| {
-            a.full_stencil(i)
-                .is_some_and(|(_, _, nb)| p.beside_on_lattice(i, nb))
-        })
-        .collect()
+/// One task's Galerkin rows: lengths, columns, values, and each row's `d`
+/// where it has the tensor form (empty without tensor rows).
+type GalerkinPart = (Vec<usize>, Vec<u32>, Vec<f64>, Vec<f64>);
+
+/// Rows of one level that are, over the 3×3 lattice nodes around them, the
+/// stencil d·(a⊗a) + off·(b⊗a + a⊗b): a and b are 1D three-point stencils
+/// (centre, side) shared by the level, `off` is the fine lattice's
+/// off-diagonal value and d a row's own. The finest lattice's full
+/// five-point rows have this form with a = (1, 0) and b = (0, 1); a bilinear
+/// Galerkin product keeps it (see [`coarsen_1d`]), so most of every coarse
+/// level can be written in closed form.
+#[derive(Clone, Debug, Default)]
+pub struct TensorRows {
+    /// Per row: its d, NaN where the row does not have the form.
+    pub d: Vec<f64>,
+    pub off: f64,
+    pub a: [f64; 2],
+    pub b: [f64; 2],
 }
 
-/// The Galerkin row of the coarse lattice node at (x, y) when its nine fine
-/// rows are stencils `d` on the diagonal and `off` to each lattice
-/// neighbour. With h = (½, 1, ½) the 1D hat, hᵀh gives 3/2 (same node) and
-/// 1/4 (next node), and hᵀSh, S the sum of the two 1D neighbours, gives 2
-/// and 1; the 2D stencil is d·(hᵀh ⊗ hᵀh) + off·(hᵀSh ⊗ hᵀh + hᵀh ⊗ hᵀSh).
+/// hᵀ s h for a 1D three-point stencil s = (centre, side) and the hat
+/// h = (½, 1, ½) on the fine points around each coarse one: the same node
+/// collects 3/2 of s's centre and 2 of its side, the next node 1/4 and 1.
+fn coarsen_1d([c, s]: [f64; 2]) -> [f64; 2] {
+    [1.5 * c + 2.0 * s, 0.25 * c + s]
+}
+
+/// The tensor rows of a matrix with stencil rows: its full five-point rows
+/// whose four neighbours are the lattice nodes beside them.
+pub(super) fn stencil_tensor_rows<A: Rows + ?Sized>(a: &A, p: &Transfer) -> TensorRows {
+    let off = (0..a.n())
+        .find_map(|i| a.full_stencil(i))
+        .map_or(0.0, |s| s.1);
+    let d = (0..a.n())
+        .into_par_iter()
+        .with_min_len(CHUNK)
+        .map(|i| match a.full_stencil(i) {
+            Some((d, o, nb)) if o == off && p.beside_on_lattice(i, nb) => d,
+            _ => f64::NAN,
+        })
+        .collect();
+    TensorRows {
+        d,
+        off,
+        a: [1.0, 0.0],
+        b: [0.0, 1.0],
+    }
+}
+
+/// The Galerkin row of the coarse lattice node at (x, y) in closed form:
+/// d·(a⊗a) + off·(b⊗a + a⊗b) with a and b the coarse level's 1D stencils.
 #[inline]
-fn uniform_lattice_row(
+fn tensor_row(
     p: &Transfer,
     [x, y]: [u32; 2],
     d: f64,
     off: f64,
+    a: [f64; 2],
+    b: [f64; 2],
     list: &mut Vec<(u32, f64)>,
 ) {
-    let centre = 2.25 * d + 6.0 * off;
-    let side = 0.375 * d + 2.0 * off;
-    let corner = 0.0625 * d + 0.5 * off;
     for dy in 0..3u32 {
         for dx in 0..3u32 {
-            let v = match (dx == 1, dy == 1) {
-                (true, true) => centre,
-                (true, false) | (false, true) => side,
-                (false, false) => corner,
-            };
+            let (i, j) = ((dx != 1) as usize, (dy != 1) as usize);
+            let v = d * (a[i] * a[j]) + off * (b[i] * a[j] + a[i] * b[j]);
             let (lx, ly) = ((x + dx).wrapping_sub(1), (y + dy).wrapping_sub(1));
             list.push((lattice_index(p, lx, ly), v));
         }
