@@ -250,7 +250,7 @@ impl Hierarchy {
             return;
         };
         let p = &self.transfers[l];
-        z.fill(0.0);
+        z.par_chunks_mut(CHUNK).for_each(|c| c.fill(0.0));
         self.sweeps[l].run(a, r, z, ch, true);
         self.exact_correction(a, l, r, z, ch);
         p.restrict_residual(a, r, z, &mut w.coarse_rhs, ch);
@@ -487,42 +487,37 @@ fn solve_n<const C: usize>(
     let mut rz = dots::<C>(&r, &zq);
     let (mut last_step, mut last_ratio) = (0.0f64, MAX_RATIO);
     for it in 1..=MAX_ITERATIONS {
-        let pq = a.apply_dot(&p, &mut zq, ch, CHUNK);
+        let (pq, pmax) = a.apply_dot(&p, &mut zq, ch, CHUNK);
         let mut alpha = [0.0f64; 4];
         for c in 0..ch {
             alpha[c] = if pq[c] > 0.0 { rz[c] / pq[c] } else { 0.0 };
         }
-        let parts: Vec<([f64; 4], f64)> = x
+        // The largest change this step makes: |α·p_i| = |α|·|p_i| exactly,
+        // and rounding keeps order, so this is the largest of the products.
+        let step = (0..ch)
+            .map(|c| alpha[c].abs() * pmax[c])
+            .fold(0.0f64, f64::max);
+        // x takes its step later, in the pass that updates p (or before
+        // returning): one pass over the vectors less per iteration.
+        let parts: Vec<[f64; 4]> = r
             .par_chunks_mut(CHUNK * ch)
-            .zip(r.par_chunks_mut(CHUNK * ch))
-            .zip(p.par_chunks(CHUNK * ch))
             .zip(zq.par_chunks(CHUNK * ch))
-            .map(|(((xs, rs), ps), qs)| {
+            .map(|(rs, qs)| {
                 let mut rr = [0.0f64; 4];
-                let mut step = 0.0f64;
-                for (((xi, ri), pi), qi) in xs
-                    .chunks_exact_mut(ch)
-                    .zip(rs.chunks_exact_mut(ch))
-                    .zip(ps.chunks_exact(ch))
-                    .zip(qs.chunks_exact(ch))
-                {
+                for (ri, qi) in rs.chunks_exact_mut(ch).zip(qs.chunks_exact(ch)) {
                     for c in 0..ch {
-                        xi[c] += alpha[c] * pi[c];
                         ri[c] -= alpha[c] * qi[c];
                         rr[c] += ri[c] * ri[c];
-                        step = step.max((alpha[c] * pi[c]).abs());
                     }
                 }
-                (rr, step)
+                rr
             })
             .collect();
         let mut rr = [0.0f64; 4];
-        let mut step = 0.0f64;
-        for (pr, ps) in parts {
+        for pr in parts {
             for c in 0..4 {
                 rr[c] += pr[c];
             }
-            step = step.max(ps);
         }
         tracing::trace!(
             iteration = it,
@@ -542,6 +537,15 @@ fn solve_n<const C: usize>(
         if remaining <= ERROR_TOLERANCE
             || (0..ch).all(|c| rr[c] <= RELATIVE_TOLERANCE.powi(2) * bb[c])
         {
+            x.par_chunks_mut(CHUNK * ch)
+                .zip(p.par_chunks(CHUNK * ch))
+                .for_each(|(xs, ps)| {
+                    for (xi, pi) in xs.chunks_exact_mut(ch).zip(ps.chunks_exact(ch)) {
+                        for c in 0..ch {
+                            xi[c] += alpha[c] * pi[c];
+                        }
+                    }
+                });
             return Ok((x, it));
         }
         m.vcycle(0, &r, &mut zq, &mut ws, ch);
@@ -551,11 +555,17 @@ fn solve_n<const C: usize>(
             beta[c] = if rz[c] > 0.0 { rz_new[c] / rz[c] } else { 0.0 };
         }
         rz = rz_new;
-        p.par_chunks_mut(CHUNK * ch)
+        x.par_chunks_mut(CHUNK * ch)
+            .zip(p.par_chunks_mut(CHUNK * ch))
             .zip(zq.par_chunks(CHUNK * ch))
-            .for_each(|(ps, zs)| {
-                for (pi, zi) in ps.chunks_exact_mut(ch).zip(zs.chunks_exact(ch)) {
+            .for_each(|((xs, ps), zs)| {
+                for ((xi, pi), zi) in xs
+                    .chunks_exact_mut(ch)
+                    .zip(ps.chunks_exact_mut(ch))
+                    .zip(zs.chunks_exact(ch))
+                {
                     for c in 0..ch {
+                        xi[c] += alpha[c] * pi[c];
                         pi[c] = zi[c] + beta[c] * pi[c];
                     }
                 }

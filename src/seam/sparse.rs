@@ -135,10 +135,10 @@ pub trait Rows: Sync {
         by_channels!(ch, apply_n(self, x, y))
     }
 
-    /// y = A x, and per channel Σ x_i·y_i summed over fixed runs of `rows`
-    /// rows (so the bits do not depend on the thread count), the runs' sums
-    /// then added in order.
-    fn apply_dot(&self, x: &[f64], y: &mut [f64], ch: usize, rows: usize) -> [f64; 4] {
+    /// y = A x, and per channel Σ x_i·y_i and max |x_i|, summed over fixed
+    /// runs of `rows` rows (so the bits do not depend on the thread count),
+    /// the runs' sums then added in order.
+    fn apply_dot(&self, x: &[f64], y: &mut [f64], ch: usize, rows: usize) -> ([f64; 4], [f64; 4]) {
         by_channels!(ch, apply_dot_n(self, x, y, rows))
     }
 
@@ -569,30 +569,32 @@ fn apply_dot_n<const C: usize>(
     x: &[f64],
     y: &mut [f64],
     rows: usize,
-) -> [f64; 4] {
-    let parts: Vec<[f64; 4]> = y
+) -> ([f64; 4], [f64; 4]) {
+    let parts: Vec<([f64; 4], [f64; 4])> = y
         .par_chunks_mut(rows * C)
         .enumerate()
         .map(|(b, ys)| {
-            let mut d = [0.0f64; 4];
+            let (mut d, mut m) = ([0.0f64; 4], [0.0f64; 4]);
             for (k, yi) in ys.chunks_exact_mut(C).enumerate() {
                 let i = b * rows + k;
                 let s = row_product::<C>(a, i, x);
                 yi.copy_from_slice(&s);
                 for c in 0..C {
                     d[c] += x[i * C + c] * s[c];
+                    m[c] = m[c].max(x[i * C + c].abs());
                 }
             }
-            d
+            (d, m)
         })
         .collect();
-    let mut d = [0.0f64; 4];
-    for p in parts {
+    let (mut d, mut m) = ([0.0f64; 4], [0.0f64; 4]);
+    for (pd, pm) in parts {
         for c in 0..4 {
-            d[c] += p[c];
+            d[c] += pd[c];
+            m[c] = m[c].max(pm[c]);
         }
     }
-    d
+    (d, m)
 }
 
 fn residual_n<const C: usize>(a: &(impl Rows + ?Sized), b: &[f64], x: &[f64], r: &mut [f64]) {
