@@ -639,7 +639,7 @@ mod tests {
         let (a, nodes) = problem(80, 60);
         let (p, coarse_nodes) = Transfer::coarsen(&nodes);
         let fine = StencilMatrix::from_csr(&a, -1.0).unwrap();
-        let tensor = super::super::sparse::stencil_tensor_rows(&fine, &p);
+        let tensor = fine.tensor_rows(&p).expect("stencil rows");
         // Most of the lattice's interior takes the closed form.
         assert!(tensor.d.iter().filter(|d| !d.is_nan()).count() > 30 * 20);
         let (fast, coarse_tensor) = fine.galerkin_with(&p, true, None).unwrap();

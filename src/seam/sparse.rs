@@ -117,17 +117,10 @@ pub trait Rows: Sync {
     /// Calls `f(column, value)` for each entry of row `i`, in column order.
     fn for_each(&self, i: usize, f: impl FnMut(usize, f64));
 
-    /// Row `i`'s diagonal, off-diagonal value and neighbours (above, left,
-    /// right, below) when it is a five-point stencil row with all four
-    /// neighbours; `None` otherwise, or where the storage does not tell.
-    #[inline]
-    fn full_stencil(&self, _i: usize) -> Option<(f64, f64, [u32; 4])> {
+    /// The rows that have the tensor form over the lattice `p` coarsens
+    /// (see [`TensorRows`]), where the storage tells; `None` otherwise.
+    fn tensor_rows(&self, _p: &Transfer) -> Option<TensorRows> {
         None
-    }
-
-    /// Whether [`Self::full_stencil`] can answer `Some` at all.
-    fn has_stencil_rows(&self) -> bool {
-        false
     }
 
     /// y = A x.
@@ -268,7 +261,7 @@ pub trait Rows: Sync {
         let tasks = rayon::current_num_threads().clamp(1, nc.max(1));
         let per = nc.div_ceil(tasks);
         let own = match tensor {
-            None if lattice && self.has_stencil_rows() => Some(stencil_tensor_rows(self, p)),
+            None if lattice => self.tensor_rows(p),
             _ => None,
         };
         let tensor = if lattice {
@@ -291,6 +284,7 @@ pub trait Rows: Sync {
             a: coarsen_1d(t.a),
             b: coarsen_1d(t.b),
         });
+        // The fine level's flags are spent: free them before the join copies.
         drop(own);
         let mut ptr = Vec::with_capacity(nc + 1);
         ptr.push(0);
@@ -473,28 +467,6 @@ fn coarsen_1d([c, s]: [f64; 2]) -> [f64; 2] {
     [1.5 * c + 2.0 * s, 0.25 * c + s]
 }
 
-/// The tensor rows of a matrix with stencil rows: its full five-point rows
-/// whose four neighbours are the lattice nodes beside them.
-pub(super) fn stencil_tensor_rows<A: Rows + ?Sized>(a: &A, p: &Transfer) -> TensorRows {
-    let off = (0..a.n())
-        .find_map(|i| a.full_stencil(i))
-        .map_or(0.0, |s| s.1);
-    let d = (0..a.n())
-        .into_par_iter()
-        .with_min_len(CHUNK)
-        .map(|i| match a.full_stencil(i) {
-            Some((d, o, nb)) if o == off && p.beside_on_lattice(i, nb) => d,
-            _ => f64::NAN,
-        })
-        .collect();
-    TensorRows {
-        d,
-        off,
-        a: [1.0, 0.0],
-        b: [0.0, 1.0],
-    }
-}
-
 /// The Galerkin row of the coarse lattice node at (x, y) in closed form:
 /// d·(a⊗a) + off·(b⊗a + a⊗b) with a and b the coarse level's 1D stencils.
 #[inline]
@@ -601,13 +573,8 @@ fn residual_n<const C: usize>(a: &(impl Rows + ?Sized), b: &[f64], x: &[f64], r:
     r.par_chunks_mut(CHUNK * C)
         .enumerate()
         .for_each(|(blk, rs)| {
-            for (k, ri) in rs.chunks_exact_mut(C).enumerate() {
-                let i = blk * CHUNK + k;
-                let s = row_product::<C>(a, i, x);
-                for c in 0..C {
-                    ri[c] = b[i * C + c] - s[c];
-                }
-            }
+            let first = blk * CHUNK;
+            residual_span_n::<C>(a, first..first + rs.len() / C, b, x, rs);
         });
 }
 

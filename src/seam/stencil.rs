@@ -11,8 +11,11 @@
 //! Both kinds list their entries in column order, so every kernel of
 //! [`Rows`] gives the same bits as on the whole matrix in compressed rows.
 
-use super::sparse::{by_channels, relax_row, Rows, SymCsr};
+use rayon::prelude::*;
+
+use super::sparse::{by_channels, relax_row, Rows, SymCsr, TensorRows};
 use super::system::SolveError;
+use super::transfer::Transfer;
 
 /// No neighbour / a stencil row (not stored).
 pub const NONE: u32 = u32::MAX;
@@ -225,20 +228,36 @@ impl Rows for StencilMatrix {
         }
     }
 
-    #[inline]
-    fn full_stencil(&self, i: usize) -> Option<(f64, f64, [u32; 4])> {
-        let full = self.stored[i] == NONE
-            && self.sides[i] == LEFT | RIGHT
-            && self.up[i] != NONE
-            && self.down[i] != NONE;
-        full.then(|| {
-            let nb = [self.up[i], i as u32 - 1, i as u32 + 1, self.down[i]];
-            (self.diag[i], self.off, nb)
+    /// Its full five-point rows whose four neighbours are the lattice nodes
+    /// beside them, with a = (1, 0) and b = (0, 1).
+    fn tensor_rows(&self, p: &Transfer) -> Option<TensorRows> {
+        let d = (0..self.n)
+            .into_par_iter()
+            .with_min_len(1 << 13)
+            .map(|i| {
+                let full = self.stored[i] == NONE
+                    && self.sides[i] == LEFT | RIGHT
+                    && self.up[i] != NONE
+                    && self.down[i] != NONE;
+                // Only a full row has a left neighbour, i − 1.
+                if full
+                    && p.beside_on_lattice(
+                        i,
+                        [self.up[i], i as u32 - 1, i as u32 + 1, self.down[i]],
+                    )
+                {
+                    self.diag[i]
+                } else {
+                    f64::NAN
+                }
+            })
+            .collect();
+        Some(TensorRows {
+            d,
+            off: self.off,
+            a: [1.0, 0.0],
+            b: [0.0, 1.0],
         })
-    }
-
-    fn has_stencil_rows(&self) -> bool {
-        true
     }
 
     unsafe fn gauss_seidel_raw(
