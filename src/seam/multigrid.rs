@@ -195,11 +195,19 @@ impl Hierarchy {
     }
 
     /// z += the exact correction on level `l`'s exact nodes, the rest held.
+    ///
+    /// Not on the level above the coarsest: there the coarse correction is
+    /// exact, an A-orthogonal projection onto the range of P, which holds
+    /// every exact direction (P is the identity on exact nodes). So it undoes
+    /// any change the pre-smoothing correction made to exact nodes, and leaves
+    /// a residual orthogonal to them, zero on exact rows, for the
+    /// post-smoothing one to find (Fox: the same CG steps to nine digits; the
+    /// coarsest level's diagonal shift is all that tells them apart).
     fn exact_correction<A: Rows>(&self, a: &A, l: usize, r: &[f64], z: &mut [f64], ch: usize) {
         let Some(rows) = self.exact.get(l) else {
             return;
         };
-        if self.exact_block.is_empty() {
+        if self.exact_block.is_empty() || l + 1 == self.transfers.len() {
             return;
         }
         let mut s = vec![0.0; rows.len() * ch];
@@ -225,7 +233,7 @@ impl Hierarchy {
         }
     }
 
-    /// z = M⁻¹ r, one V-cycle from level `l` down.
+    /// z = M⁻¹ r, one V-cycle from level `l` down; `z` must be zero on entry.
     fn vcycle(&self, l: usize, r: &[f64], z: &mut [f64], ws: &mut [Work], ch: usize) {
         match l {
             _ if l == self.transfers.len() => {
@@ -250,10 +258,10 @@ impl Hierarchy {
             return;
         };
         let p = &self.transfers[l];
-        z.par_chunks_mut(CHUNK).for_each(|c| c.fill(0.0));
         self.sweeps[l].run(a, r, z, ch, true);
         self.exact_correction(a, l, r, z, ch);
         p.restrict_residual(a, r, z, &mut w.coarse_rhs, ch);
+        w.coarse_z.par_chunks_mut(CHUNK).for_each(|c| c.fill(0.0));
         self.vcycle(l + 1, &w.coarse_rhs, &mut w.coarse_z, rest, ch);
         p.prolong_add(&w.coarse_z, z, ch);
         self.exact_correction(a, l, r, z, ch);
@@ -499,15 +507,17 @@ fn solve_n<const C: usize>(
             .fold(0.0f64, f64::max);
         // x takes its step later, in the pass that updates p (or before
         // returning): one pass over the vectors less per iteration.
+        // A p is spent here: zq is cleared in the same pass, for the V-cycle.
         let parts: Vec<[f64; 4]> = r
             .par_chunks_mut(CHUNK * ch)
-            .zip(zq.par_chunks(CHUNK * ch))
+            .zip(zq.par_chunks_mut(CHUNK * ch))
             .map(|(rs, qs)| {
                 let mut rr = [0.0f64; 4];
-                for (ri, qi) in rs.chunks_exact_mut(ch).zip(qs.chunks_exact(ch)) {
+                for (ri, qi) in rs.chunks_exact_mut(ch).zip(qs.chunks_exact_mut(ch)) {
                     for c in 0..ch {
                         ri[c] -= alpha[c] * qi[c];
                         rr[c] += ri[c] * ri[c];
+                        qi[c] = 0.0;
                     }
                 }
                 rr
