@@ -51,7 +51,7 @@ pub fn assemble(
     w: &Weights,
 ) -> Result<(StencilMatrix, Vec<f64>), SolveError> {
     let ch = channels;
-    let mut rhs = vec![0.0f64; n * ch];
+    let mut rhs = crate::heap::filled(n * ch, 0.0f64);
     let ts = std::time::Instant::now();
     let seam_rows = seam_entries(points, unknown, input, ch, n, &mut rhs);
     tracing::debug!(
@@ -80,10 +80,10 @@ pub fn assemble(
         })
         .collect();
     let mut stencil = StencilRows {
-        diag: vec![0.0; n],
-        up: vec![NONE; n],
-        down: vec![NONE; n],
-        sides: vec![0; n],
+        diag: crate::heap::filled(n, 0.0),
+        up: crate::heap::filled(n, NONE),
+        down: crate::heap::filled(n, NONE),
+        sides: crate::heap::filled(n, 0),
     };
     let mut jobs = Vec::with_capacity(tasks.len());
     {

@@ -227,7 +227,7 @@ pub fn erase(
     // as the decay needs to bring that jump below the tolerance, and at least
     // `MIN_BAND` decay lengths (changes driven by the C1 term or by distant
     // jumps are caught by the check after the solve).
-    let mut reach = vec![-1i32; grid.len()];
+    let mut reach = crate::heap::filled(grid.len(), -1i32);
     for &(t, jump) in &jumps {
         if 0.5 * jump > tol {
             // Each side of the seam takes about half the jump.
@@ -316,7 +316,7 @@ fn grow_band(
     let (w, h) = (grid.width, grid.height);
     let decay_len = -1.0 / ratio.ln();
     // reach[t] ≥ 0: texel t lies within the needed widening of some leak.
-    let mut reach = vec![-1i32; w * h];
+    let mut reach = crate::heap::filled(w * h, -1i32);
     let leaks: usize = reach
         .par_chunks_mut(GROW_CHUNK)
         .enumerate()
@@ -447,7 +447,7 @@ fn solve_band(
     solver: Solver,
     start: &[f32],
 ) -> Result<(Vec<f32>, usize), EraseError> {
-    let mut unknown = vec![u32::MAX; grid.len()];
+    let mut unknown = crate::heap::filled(grid.len(), u32::MAX);
     let mut n = 0u32;
     for (t, _) in band.iter().enumerate().filter(|(_, b)| **b) {
         unknown[t] = n;
@@ -509,7 +509,7 @@ fn solve_band(
             x
         }
     };
-    let mut out = input.to_vec();
+    let mut out = crate::heap::copied(input);
     out.par_chunks_mut(ch)
         .zip(unknown.par_iter())
         .filter(|(_, &u)| u != u32::MAX)
@@ -542,8 +542,8 @@ fn place_nodes(
         .par_chunks(run)
         .map(|u| u.iter().filter(|&&u| u != u32::MAX).count())
         .collect();
-    let mut nodes = vec![Node::Exact; n];
-    let mut x0 = vec![0.0f64; n * ch];
+    let mut nodes = crate::heap::filled(n, Node::Exact);
+    let mut x0 = crate::heap::filled(n * ch, 0.0f64);
     let mut parts = Vec::with_capacity(counts.len());
     let (mut rest_n, mut rest_x) = (&mut nodes[..], &mut x0[..]);
     for &c in &counts {

@@ -272,8 +272,8 @@ impl Hierarchy {
         self.transfers
             .iter()
             .map(|p| Work {
-                coarse_rhs: vec![0.0; p.coarse * ch],
-                coarse_z: vec![0.0; p.coarse * ch],
+                coarse_rhs: crate::heap::filled(p.coarse * ch, 0.0),
+                coarse_z: crate::heap::filled(p.coarse * ch, 0.0),
             })
             .collect()
     }
@@ -489,9 +489,9 @@ fn solve_n<const C: usize>(
     let mut ws = m.workspace(ch);
     // `zq` holds the preconditioned residual z, and A p in its turn: A p is
     // spent on updating x and r before the next V-cycle writes z.
-    let mut zq = vec![0.0; n * ch];
+    let mut zq = crate::heap::filled(n * ch, 0.0);
     m.vcycle(0, &r, &mut zq, &mut ws, ch);
-    let mut p = zq.clone();
+    let mut p = crate::heap::copied(&zq);
     let mut rz = dots::<C>(&r, &zq);
     let (mut last_step, mut last_ratio) = (0.0f64, MAX_RATIO);
     for it in 1..=MAX_ITERATIONS {

@@ -72,7 +72,7 @@ impl StencilMatrix {
         if g.ptr.len() != g.rows.len() + 1 || g.ptr.last() != Some(&g.col.len()) {
             return bad("stored rows and their pointers disagree".into());
         }
-        let mut stored = vec![NONE; n];
+        let mut stored = crate::heap::filled(n, NONE);
         let mut last = None;
         for (k, &i) in g.rows.iter().enumerate() {
             if i as usize >= n || last.is_some_and(|l| l >= i) {

@@ -93,12 +93,12 @@ impl Transfer {
         let mut fine_grid = Grid {
             w: fw,
             h: fh,
-            id: vec![NONE; fw as usize * fh as usize],
+            id: crate::heap::filled(fw as usize * fh as usize, NONE),
         };
         let mut coarse_grid = Grid {
             w: cw,
             h: ch,
-            id: vec![NONE; cw as usize * ch as usize],
+            id: crate::heap::filled(cw as usize * ch as usize, NONE),
         };
         let mut fine_at = Vec::with_capacity(nodes.len());
         let mut coarse_at = Vec::new();
