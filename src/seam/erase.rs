@@ -28,7 +28,7 @@ use rayon::prelude::*;
 
 use super::assemble::{assemble, Weights};
 use super::grid::TexelGrid;
-use super::multigrid::{self, Hierarchy, Node};
+use super::multigrid::{self, CgVectors, Hierarchy, Node};
 use super::quadrature::{seam_derivative_points, seam_difference_points, QuadPoint, Segment};
 use super::sparse::Rows;
 use super::system::{Cholesky, SolveError};
@@ -492,13 +492,13 @@ fn solve_band(
     let x = match placed {
         None => Cholesky::new(&a.to_csr()?.to_faer())?.solve_interleaved(&b, ch),
         Some((nodes, x0)) => {
-            let m = Hierarchy::new(a, nodes)?;
+            let (m, vectors) = Hierarchy::new_beside(a, nodes, || CgVectors::new(n, ch))?;
             tracing::debug!(
                 rss_mb = crate::heap::resident_mb(),
                 elapsed_ms = t0.elapsed().as_millis() as u64,
                 "multigrid hierarchy built"
             );
-            let (x, iterations) = multigrid::solve(&m, b, ch, x0)?;
+            let (x, iterations) = multigrid::solve(&m, b, ch, x0, vectors)?;
             tracing::debug!(
                 rss_mb = crate::heap::resident_mb(),
                 elapsed_ms = t0.elapsed().as_millis() as u64,

@@ -83,6 +83,16 @@ pub struct Hierarchy {
 impl Hierarchy {
     /// Builds the levels below `fine`, whose unknowns sit at `nodes`.
     pub fn new(fine: StencilMatrix, nodes: Vec<Node>) -> Result<Self, SolveError> {
+        Ok(Self::new_beside(fine, nodes, || ())?.0)
+    }
+
+    /// As [`Self::new`], and runs `beside` on the thread that the coarsest
+    /// factorisation's ordering, which is serial, leaves idle.
+    pub fn new_beside<T: Send>(
+        fine: StencilMatrix,
+        nodes: Vec<Node>,
+        beside: impl FnOnce() -> T + Send,
+    ) -> Result<(Self, T), SolveError> {
         let t = std::time::Instant::now();
         let mut coarse: Vec<SymCsr> = Vec::new();
         let mut transfers = Vec::new();
@@ -155,20 +165,28 @@ impl Hierarchy {
         };
         last.shift_diagonal(COARSE_SHIFT, |i| nodes[i] != Node::Exact);
         // The two factorisations are independent; the coarsest one's ordering
-        // runs on one thread, so the exact block's parts take the other.
-        let (exact_block, coarsest) = rayon::join(
+        // runs on one thread, so the exact block's parts and `beside` take
+        // the other.
+        let ((exact_block, side), coarsest) = rayon::join(
             || {
-                let tb = std::time::Instant::now();
-                let block = match exact.first() {
-                    Some(rows) if !rows.is_empty() => BlockPart::split(&fine.submatrix(rows)?)?,
-                    _ => Vec::new(),
-                };
-                tracing::debug!(
-                    rss_mb = crate::heap::resident_mb(),
-                    elapsed_ms = tb.elapsed().as_millis() as u64,
-                    "exact block factored"
-                );
-                Ok::<_, SolveError>(block)
+                rayon::join(
+                    || {
+                        let tb = std::time::Instant::now();
+                        let block = match exact.first() {
+                            Some(rows) if !rows.is_empty() => {
+                                BlockPart::split(&fine.submatrix(rows)?)?
+                            }
+                            _ => Vec::new(),
+                        };
+                        tracing::debug!(
+                            rss_mb = crate::heap::resident_mb(),
+                            elapsed_ms = tb.elapsed().as_millis() as u64,
+                            "exact block factored"
+                        );
+                        Ok::<_, SolveError>(block)
+                    },
+                    beside,
+                )
             },
             || Cholesky::new(&last.to_faer()),
         );
@@ -183,7 +201,7 @@ impl Hierarchy {
             factor_ms = (t.elapsed() - galerkin).as_millis() as u64,
             "multigrid hierarchy"
         );
-        Ok(Hierarchy {
+        let h = Hierarchy {
             fine,
             coarse,
             transfers,
@@ -191,7 +209,8 @@ impl Hierarchy {
             exact,
             exact_block,
             sweeps,
-        })
+        };
+        Ok((h, side))
     }
 
     /// z += the exact correction on level `l`'s exact nodes, the rest held.
@@ -459,8 +478,26 @@ fn dots<const C: usize>(u: &[f64], v: &[f64]) -> [f64; 4] {
     d
 }
 
+/// CG's two vectors besides x and b, made ahead: on a 2048² band they are
+/// about 100 MB, whose page faults [`Hierarchy::new_beside`] can take on a
+/// thread that would otherwise wait.
+pub struct CgVectors {
+    zq: Vec<f64>,
+    p: Vec<f64>,
+}
+
+impl CgVectors {
+    pub fn new(n: usize, ch: usize) -> Self {
+        CgVectors {
+            zq: crate::heap::filled(n * ch, 0.0),
+            p: crate::heap::filled(n * ch, 0.0),
+        }
+    }
+}
+
 /// Solves A x = b (`ch` ≤ 4 interleaved channels) by CG preconditioned with
-/// one V-cycle of `m`, from the guess `x0`. Returns x and the iteration count.
+/// one V-cycle of `m`, from the guess `x0`, in `v` (of A's size).
+/// Returns x and the iteration count.
 ///
 /// `b` is taken by value and becomes the residual: on a 2048² band each
 /// vector is about 50 MB, and each megabyte a process touches for the first
@@ -470,14 +507,16 @@ pub fn solve(
     b: Vec<f64>,
     ch: usize,
     x0: Vec<f64>,
+    v: CgVectors,
 ) -> Result<(Vec<f64>, usize), SolveError> {
-    by_channels!(ch, solve_n(m, b, x0))
+    by_channels!(ch, solve_n(m, b, x0, v))
 }
 
 fn solve_n<const C: usize>(
     m: &Hierarchy,
     b: Vec<f64>,
     x0: Vec<f64>,
+    v: CgVectors,
 ) -> Result<(Vec<f64>, usize), SolveError> {
     let ch = C;
     let a = &m.fine;
@@ -489,9 +528,16 @@ fn solve_n<const C: usize>(
     let mut ws = m.workspace(ch);
     // `zq` holds the preconditioned residual z, and A p in its turn: A p is
     // spent on updating x and r before the next V-cycle writes z.
-    let mut zq = crate::heap::filled(n * ch, 0.0);
+    let CgVectors { mut zq, mut p } = v;
+    assert!(
+        zq.len() == n * ch && p.len() == n * ch,
+        "CG vectors of the wrong size"
+    );
+    // The V-cycle wants zq zero: fresh from `CgVectors::new`.
     m.vcycle(0, &r, &mut zq, &mut ws, ch);
-    let mut p = crate::heap::copied(&zq);
+    p.par_chunks_mut(CHUNK * ch)
+        .zip(zq.par_chunks(CHUNK * ch))
+        .for_each(|(p, z)| p.copy_from_slice(z));
     let mut rz = dots::<C>(&r, &zq);
     let (mut last_step, mut last_ratio) = (0.0f64, MAX_RATIO);
     for it in 1..=MAX_ITERATIONS {
@@ -682,7 +728,7 @@ mod tests {
         assert!(fine.stored_rows() > 0 && fine.stored_rows() < 20);
         let m = Hierarchy::new(fine, nodes).unwrap();
         assert!(m.transfers.len() >= 2, "{} levels", m.transfers.len() + 1);
-        let (x, _) = solve(&m, b, 3, vec![0.0; n * 3]).unwrap();
+        let (x, _) = solve(&m, b, 3, vec![0.0; n * 3], CgVectors::new(n, 3)).unwrap();
         let worst = x
             .iter()
             .zip(&x_true)
