@@ -16,6 +16,9 @@ const NONE: u32 = u32::MAX;
 /// Coarse unknowns per parallel task of [`Transfer::restrict`], fine ones
 /// per task of [`Transfer::prolong_add`].
 const CHUNK: usize = 8192;
+/// Coarse unknowns per task of [`Transfer::restrict_residual`]: its fine
+/// residual span (about three times as many values) stays in cache.
+const SPAN_CHUNK: usize = 4096;
 
 /// The coarse unknowns a fine one interpolates from ([`Transfer::parent_square`]).
 #[derive(Clone, Copy, Debug)]
@@ -64,6 +67,9 @@ pub struct Transfer {
     coarse_at: Vec<[u32; 2]>,
     fine_grid: Grid,
     coarse_grid: Grid,
+    /// Per run of [`SPAN_CHUNK`] coarse unknowns, the fine unknowns they
+    /// read: first and one past the last.
+    spans: Vec<(usize, usize)>,
 }
 
 /// Along one axis: an even coordinate sits on a coarse node, an odd one halfway.
@@ -128,14 +134,29 @@ impl Transfer {
                 }
             }
         }
-        let t = Transfer {
+        let mut t = Transfer {
             fine: nodes.len(),
             coarse: coarse.len(),
             fine_at,
             coarse_at,
             fine_grid,
             coarse_grid,
+            spans: Vec::new(),
         };
+        t.spans = (0..t.coarse.div_ceil(SPAN_CHUNK))
+            .into_par_iter()
+            .map(|b| {
+                let (mut lo, mut hi) = (usize::MAX, 0);
+                for k in b * SPAN_CHUNK..((b + 1) * SPAN_CHUNK).min(t.coarse) {
+                    let (fine, len) = t.fine_of(k);
+                    for &(i, _) in &fine[..len] {
+                        lo = lo.min(i);
+                        hi = hi.max(i + 1);
+                    }
+                }
+                (lo.min(hi), hi)
+            })
+            .collect();
         (t, coarse)
     }
 
@@ -225,24 +246,40 @@ impl Transfer {
     #[inline]
     pub fn fine_of(&self, k: usize) -> ([(usize, f64); 9], usize) {
         let mut out = [(0, 0.0); 9];
+        let mut len = 0;
+        self.for_each_fine(k, |i, w| {
+            out[len] = (i, w);
+            len += 1;
+        });
+        (out, len)
+    }
+
+    /// Calls `f` with each fine unknown coarse unknown `k` contributes to
+    /// and its weight, in the order of [`Self::fine_of`]. (A closure, not an
+    /// array: the restriction's inner loop, at about 5 ns a tap through the
+    /// array, spent as long gathering as computing the residual.)
+    #[inline(always)]
+    pub fn for_each_fine(&self, k: usize, mut f: impl FnMut(usize, f64)) {
         let [x, y] = self.coarse_at[k];
         if x == NONE {
-            out[0] = (y as usize, 1.0);
-            return (out, 1);
+            f(y as usize, 1.0);
+            return;
         }
-        let axis = |c: u32| [(2 * c).wrapping_sub(1), 2 * c, 2 * c + 1];
-        let weight = [HALF, 1.0, HALF];
-        let mut len = 0;
-        for (&fy, wy) in axis(y).iter().zip(weight) {
-            for (&fx, wx) in axis(x).iter().zip(weight) {
-                let i = self.fine_grid.at(fx, fy);
+        let g = &self.fine_grid;
+        let (w, h) = (g.w as usize, g.h as usize);
+        let (x, y) = (2 * x as usize, 2 * y as usize);
+        let columns = x.saturating_sub(1)..(x + 2).min(w);
+        for fy in y.saturating_sub(1)..(y + 2).min(h) {
+            let wy = if fy == y { 1.0 } else { HALF };
+            let row = &g.id[fy * w..(fy + 1) * w];
+            for fx in columns.clone() {
+                let i = row[fx];
                 if i != NONE {
-                    out[len] = (i as usize, wx * wy);
-                    len += 1;
+                    let wx = if fx == x { 1.0 } else { HALF };
+                    f(i as usize, wx * wy);
                 }
             }
         }
-        (out, len)
     }
 
     /// rc = Pᵀ r.
@@ -256,13 +293,12 @@ impl Transfer {
             .for_each(|(b, out)| {
                 for (k, o) in out.chunks_exact_mut(C).enumerate() {
                     let mut s = [0.0f64; C];
-                    let (fine, len) = self.fine_of(b * CHUNK + k);
-                    for &(i, w) in &fine[..len] {
+                    self.for_each_fine(b * CHUNK + k, |i, w| {
                         let ri = &r[i * C..(i + 1) * C];
                         for c in 0..C {
                             s[c] += w * ri[c];
                         }
-                    }
+                    });
                     o.copy_from_slice(&s);
                 }
             });
@@ -271,8 +307,8 @@ impl Transfer {
     /// rc = Pᵀ (r − A z), without the fine residual as a whole: each task
     /// computes the span of fine rows its coarse unknowns read (coarse
     /// unknowns are numbered in the order fine ones first reach them, so a
-    /// run of them reads a run of fine rows, give or take two lattice rows)
-    /// and restricts from there. The same bits as [`Self::restrict`] on the
+    /// run of them reads a run of fine rows, give or take two lattice rows;
+    /// [`Self::coarsen`] finds the spans) and restricts from there. The same bits as [`Self::restrict`] on the
     /// residual, one pass and one fine vector less.
     pub fn restrict_residual<A: Rows>(
         &self,
@@ -292,38 +328,23 @@ impl Transfer {
         z: &[f64],
         rc: &mut [f64],
     ) {
-        type Fine = ([(usize, f64); 9], usize);
-        rc.par_chunks_mut(CHUNK * C).enumerate().for_each_init(
-            || (Vec::<Fine>::new(), Vec::<f64>::new()),
-            |(fines, res), (b, out)| {
-                let first = b * CHUNK;
-                fines.clear();
-                fines.extend((first..first + out.len() / C).map(|k| self.fine_of(k)));
-                let (mut lo, mut hi) = (usize::MAX, 0);
-                for (fine, len) in fines.iter() {
-                    for &(i, _) in &fine[..*len] {
-                        lo = lo.min(i);
-                        hi = hi.max(i);
-                    }
-                }
-                if lo > hi {
-                    out.fill(0.0);
-                    return;
-                }
-                res.resize((hi + 1 - lo) * C, 0.0);
-                a.residual_span(lo..hi + 1, r, z, res, C);
-                for (o, (fine, len)) in out.chunks_exact_mut(C).zip(fines.iter()) {
+        rc.par_chunks_mut(SPAN_CHUNK * C)
+            .zip(&self.spans)
+            .enumerate()
+            .for_each_init(Vec::<f64>::new, |res, (b, (out, &(lo, hi)))| {
+                res.resize((hi - lo) * C, 0.0);
+                a.residual_span(lo..hi, r, z, res, C);
+                for (k, o) in out.chunks_exact_mut(C).enumerate() {
                     let mut s = [0.0f64; C];
-                    for &(i, w) in &fine[..*len] {
+                    self.for_each_fine(b * SPAN_CHUNK + k, |i, w| {
                         let ri = &res[(i - lo) * C..(i - lo + 1) * C];
                         for c in 0..C {
                             s[c] += w * ri[c];
                         }
-                    }
+                    });
                     o.copy_from_slice(&s);
                 }
-            },
-        );
+            });
     }
 
     /// z += P zc.
