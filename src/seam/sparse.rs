@@ -303,8 +303,9 @@ pub trait Rows: Sync {
             for l in lens {
                 ptr.push(ptr.last().copied().unwrap_or(0) + l);
             }
-            col.extend(c);
-            val.extend(v);
+            // Into the reserved room, by all threads (see `heap::filled`).
+            col.par_extend(c.into_par_iter());
+            val.par_extend(v.into_par_iter());
         }
         Ok((SymCsr::from_parts(ptr, col, val)?, coarse_tensor))
     }
