@@ -184,7 +184,7 @@ pub fn erase(
     let change = w.change / t_count as f64;
     let movable: Vec<bool> = classes
         .inside
-        .iter()
+        .par_iter()
         .zip(&classes.free)
         .map(|(&i, &f)| i || f)
         .collect();
@@ -238,7 +238,7 @@ pub fn erase(
     spread_down(&mut reach, grid.width, grid.height);
     let base = (MIN_BAND * decay_len).ceil() as u32;
     let mut band: Vec<bool> = dist
-        .iter()
+        .par_iter()
         .zip(&reach)
         .zip(&movable)
         .map(|((&d, &r), &m)| m && (d <= base || r >= 0))
@@ -361,7 +361,7 @@ fn grow_band(
     }
     spread_down(&mut reach, w, h);
     let band = band
-        .iter()
+        .par_iter()
         .zip(&reach)
         .zip(movable)
         .map(|((&b, &r), &m)| b || (m && r >= 0))
@@ -421,9 +421,12 @@ fn distance_from(grid: &TexelGrid, source: &[bool], cap: usize) -> Vec<u32> {
     let cap = cap.min(i32::MAX as usize / 2) as i32;
     // Far below any reach, and far enough above i32::MIN to step down from.
     let none = i32::MIN / 2;
-    let mut reach: Vec<i32> = source.iter().map(|&s| if s { cap } else { none }).collect();
+    let mut reach: Vec<i32> = source
+        .par_iter()
+        .map(|&s| if s { cap } else { none })
+        .collect();
     spread_down(&mut reach, grid.width, grid.height);
-    reach.iter().map(|&r| (cap - r.max(0)) as u32).collect()
+    reach.par_iter().map(|&r| (cap - r.max(0)) as u32).collect()
 }
 
 /// Above this many unknowns, multigrid CG beats a direct factorisation.
