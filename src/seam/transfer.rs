@@ -16,6 +16,8 @@ const NONE: u32 = u32::MAX;
 /// Coarse unknowns per parallel task of [`Transfer::restrict`], fine ones
 /// per task of [`Transfer::prolong_add`].
 const CHUNK: usize = 8192;
+/// Fine unknowns per parallel task of [`Transfer::coarsen`].
+const COARSEN_RUN: usize = 1 << 14;
 /// Coarse unknowns per task of [`Transfer::restrict_residual`]: its fine
 /// residual span (about three times as many values) stays in cache.
 const SPAN_CHUNK: usize = 4096;
@@ -88,13 +90,13 @@ impl Transfer {
     /// fine ones first reach them, so an exact node keeps its rank among
     /// the exact nodes and the lattice stays in about raster order.
     pub fn coarsen(nodes: &[Node]) -> (Transfer, Vec<Node>) {
-        let (mut fw, mut fh) = (0u32, 0u32);
-        for n in nodes {
-            if let Node::Lattice(x, y) = *n {
-                fw = fw.max(x + 1);
-                fh = fh.max(y + 1);
-            }
-        }
+        let (fw, fh) = nodes
+            .par_iter()
+            .map(|n| match *n {
+                Node::Lattice(x, y) => (x + 1, y + 1),
+                Node::Exact => (0, 0),
+            })
+            .reduce(|| (0, 0), |a, b| (a.0.max(b.0), a.1.max(b.1)));
         let (cw, ch) = (fw / 2 + 1, fh / 2 + 1);
         let mut fine_grid = Grid {
             w: fw,
@@ -106,34 +108,79 @@ impl Transfer {
             h: ch,
             id: crate::heap::filled(cw as usize * ch as usize, NONE),
         };
-        let mut fine_at = Vec::with_capacity(nodes.len());
-        let mut coarse_at = Vec::new();
-        let mut coarse = Vec::new();
         for (i, n) in nodes.iter().enumerate() {
-            match *n {
-                Node::Exact => {
-                    fine_at.push([NONE, coarse.len() as u32]);
-                    coarse_at.push([NONE, i as u32]);
-                    coarse.push(Node::Exact);
-                }
-                Node::Lattice(x, y) => {
-                    fine_at.push([x, y]);
-                    fine_grid.id[(y * fw + x) as usize] = i as u32;
-                    let (py, ny) = parents(y);
-                    let (px, nx) = parents(x);
-                    for &(cy, _) in &py[..ny] {
-                        for &(cx, _) in &px[..nx] {
-                            let slot = &mut coarse_grid.id[(cy * cw + cx) as usize];
-                            if *slot == NONE {
-                                *slot = coarse.len() as u32;
-                                coarse_at.push([cx, cy]);
-                                coarse.push(Node::Lattice(cx, cy));
+            if let Node::Lattice(x, y) = *n {
+                fine_grid.id[(y * fw + x) as usize] = i as u32;
+            }
+        }
+        // A coarse lattice point is numbered when the lowest fine unknown
+        // that reaches it comes (NONE, above every index, marks an empty
+        // point): each run of fine unknowns lists the coarse unknowns it
+        // brings, in parallel, and the runs are joined in order. The same
+        // numbering as one pass in fine order that creates each coarse
+        // point on first reach.
+        let first_reach = |cx: u32, cy: u32, i: u32| {
+            let (x0, y0) = ((2 * cx).saturating_sub(1), (2 * cy).saturating_sub(1));
+            (y0..(2 * cy + 2).min(fh)).all(|fy| {
+                let row = &fine_grid.id[(fy * fw) as usize..((fy + 1) * fw) as usize];
+                row[x0 as usize..(2 * cx + 2).min(fw) as usize]
+                    .iter()
+                    .all(|&j| j >= i)
+            })
+        };
+        let runs: Vec<Vec<[u32; 2]>> = nodes
+            .par_chunks(COARSEN_RUN)
+            .enumerate()
+            .map(|(b, run)| {
+                let mut out = Vec::with_capacity(run.len() / 3);
+                for (k, n) in run.iter().enumerate() {
+                    let i = (b * COARSEN_RUN + k) as u32;
+                    match *n {
+                        Node::Exact => out.push([NONE, i]),
+                        Node::Lattice(x, y) => {
+                            let (py, ny) = parents(y);
+                            let (px, nx) = parents(x);
+                            for &(cy, _) in &py[..ny] {
+                                for &(cx, _) in &px[..nx] {
+                                    if first_reach(cx, cy, i) {
+                                        out.push([cx, cy]);
+                                    }
+                                }
                             }
                         }
                     }
                 }
+                out
+            })
+            .collect();
+        let mut coarse_at = Vec::with_capacity(runs.iter().map(Vec::len).sum());
+        for run in runs {
+            coarse_at.extend(run);
+        }
+        let mut fine_at: Vec<[u32; 2]> = nodes
+            .par_iter()
+            .map(|n| match *n {
+                Node::Lattice(x, y) => [x, y],
+                Node::Exact => [NONE, NONE],
+            })
+            .collect();
+        for (k, &[x, y]) in coarse_at.iter().enumerate() {
+            if x == NONE {
+                fine_at[y as usize][1] = k as u32;
+            } else {
+                coarse_grid.id[(y * cw + x) as usize] = k as u32;
             }
         }
+        let coarse: Vec<Node> = coarse_at
+            .par_iter()
+            .map(|&[x, y]| {
+                if x == NONE {
+                    Node::Exact
+                } else {
+                    Node::Lattice(x, y)
+                }
+            })
+            .collect();
         let mut t = Transfer {
             fine: nodes.len(),
             coarse: coarse.len(),
@@ -148,11 +195,10 @@ impl Transfer {
             .map(|b| {
                 let (mut lo, mut hi) = (usize::MAX, 0);
                 for k in b * SPAN_CHUNK..((b + 1) * SPAN_CHUNK).min(t.coarse) {
-                    let (fine, len) = t.fine_of(k);
-                    for &(i, _) in &fine[..len] {
+                    t.for_each_fine(k, |i, _| {
                         lo = lo.min(i);
                         hi = hi.max(i + 1);
-                    }
+                    });
                 }
                 (lo.min(hi), hi)
             })
