@@ -15,6 +15,7 @@ use rayon::prelude::*;
 
 use super::grid::TexelGrid;
 use super::quadrature::QuadPoint;
+use super::sparse::by_channels;
 use super::stencil::{StencilMatrix, StencilRows, StoredRows, LEFT, NONE, RIGHT};
 use super::system::SolveError;
 use super::texels::TexelClasses;
@@ -112,8 +113,9 @@ pub fn assemble(
     let parts: Vec<StoredRows> = jobs
         .into_par_iter()
         .map(|(texels, out)| {
-            lattice_rows(
-                grid, input, ch, classes, unknown, w, &seam_rows, texels, out,
+            by_channels!(
+                ch,
+                lattice_rows(grid, input, classes, unknown, w, &seam_rows, texels, out)
             )
         })
         .collect();
@@ -147,10 +149,9 @@ struct Out<'a> {
 /// and gradient links, at most five entries), merged with the seam entries
 /// where a row has any (those rows are returned, stored in full).
 #[allow(clippy::too_many_arguments)]
-fn lattice_rows(
+fn lattice_rows<const C: usize>(
     grid: &TexelGrid,
     input: &[f32],
-    ch: usize,
     classes: &TexelClasses,
     unknown: &[u32],
     w: &Weights,
@@ -184,11 +185,11 @@ fn lattice_rows(
             w.change
         };
         let mut diag = anchor;
-        let rhs = &mut out.rhs[k * ch..(k + 1) * ch];
-        let mut r = [0.0f64; 4];
-        for (c, r) in r[..ch].iter_mut().enumerate() {
-            *r += anchor * f64::from(input[t * ch + c]);
-        }
+        let rhs = &mut out.rhs[k * C..(k + 1) * C];
+        let p0: [f32; C] = input[t * C..(t + 1) * C].try_into().expect("C values");
+        let mut r: [f64; C] = p0.map(|v| anchor * f64::from(v));
+        // Only a row with seam entries is stored, and needs its entries listed.
+        let seam_row = seam.peek().is_some_and(|e| e.0 == u);
         lattice.clear();
         let (mut up, mut down, mut sides) = (NONE, NONE, 0u8);
         // Neighbours in increasing texel order (up, left, right, down), so
@@ -200,7 +201,7 @@ fn lattice_rows(
             (y + 1 < ht).then(|| t + wd),
         ];
         for (side, s) in neighbours.into_iter().enumerate() {
-            if side == 2 {
+            if side == 2 && seam_row {
                 lattice.push((u, 0.0));
             }
             let Some(s) = s.filter(|&s| movable(s)) else {
@@ -209,19 +210,23 @@ fn lattice_rows(
             // w_grad·((p_t − p_s) − target)², target = p0_t − p0_s between inside texels.
             diag += w.grad;
             let both_inside = classes.inside[t] && classes.inside[s];
-            for (c, r) in r[..ch].iter_mut().enumerate() {
-                let (a, b) = (f64::from(input[t * ch + c]), f64::from(input[s * ch + c]));
+            let us = unknown[s];
+            let ps: [f32; C] = input[s * C..(s + 1) * C].try_into().expect("C values");
+            for c in 0..C {
+                let (a, b) = (f64::from(p0[c]), f64::from(ps[c]));
                 let target = if both_inside { a - b } else { 0.0 };
-                let held = if unknown[s] == NONE { b } else { 0.0 };
-                *r += w.grad * (target + held);
+                let held = if us == NONE { b } else { 0.0 };
+                r[c] += w.grad * (target + held);
             }
-            if unknown[s] != NONE {
-                lattice.push((unknown[s], -w.grad));
+            if us != NONE {
+                if seam_row {
+                    lattice.push((us, -w.grad));
+                }
                 match side {
-                    0 => up = unknown[s],
+                    0 => up = us,
                     1 => sides |= LEFT,
                     2 => sides |= RIGHT,
-                    _ => down = unknown[s],
+                    _ => down = us,
                 }
             }
         }
@@ -230,7 +235,7 @@ fn lattice_rows(
         }
         out.diag[k] = diag;
         k += 1;
-        if seam.peek().is_none_or(|e| e.0 != u) {
+        if !seam_row {
             let k = k - 1;
             (out.up[k], out.down[k], out.sides[k]) = (up, down, sides);
             continue;
@@ -291,12 +296,14 @@ fn seam_entries(
         let mut free = [(u32::MAX, 0.0f64); 8];
         let mut nfree = 0;
         let mut offset = [0.0f64; 4];
+        let mut held = false;
         for &(t, wt) in &q.taps {
             if wt == 0.0 {
                 continue;
             }
             let u = unknown[t as usize];
             if u == u32::MAX {
+                held = true;
                 for (c, o) in offset[..ch].iter_mut().enumerate() {
                     *o -= wt * f64::from(input[t as usize * ch + c]);
                 }
@@ -310,9 +317,12 @@ fn seam_entries(
         if nfree == 0 {
             continue;
         }
-        for &(u, wu) in &free[..nfree] {
-            for c in 0..ch {
-                rhs[u as usize * ch + c] += q.weight * wu * offset[c];
+        // Near the seams every tap is usually free: no scattered writes then.
+        if held {
+            for &(u, wu) in &free[..nfree] {
+                for c in 0..ch {
+                    rhs[u as usize * ch + c] += q.weight * wu * offset[c];
+                }
             }
         }
         let key = free.map(|f| f.0);
