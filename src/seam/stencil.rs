@@ -85,12 +85,13 @@ impl StencilMatrix {
                 return bad(format!("row {i}: columns unsorted or out of range"));
             }
         }
-        for (i, &k) in stored.iter().enumerate() {
+        // In parallel, reporting the first bad row whatever the thread count.
+        let first_bad = stored.par_iter().enumerate().find_map_first(|(i, &k)| {
             if k != NONE {
-                continue;
+                return None;
             }
             if s.diag[i].is_nan() || s.diag[i] <= 0.0 {
-                return Err(SolveError::NotPositiveDefinite(format!(
+                return Some(SolveError::NotPositiveDefinite(format!(
                     "row {i} has no positive diagonal"
                 )));
             }
@@ -98,13 +99,19 @@ impl StencilMatrix {
             let left_ok = sides & LEFT == 0 || i > 0;
             let right_ok = sides & RIGHT == 0 || i + 1 < n;
             // Column order: up < left (i − 1) < i < right (i + 1) < down.
-            let lowest_side = if sides & LEFT != 0 { i - 1 } else { i };
+            let lowest_side = if sides & LEFT != 0 {
+                i.saturating_sub(1)
+            } else {
+                i
+            };
             let highest_side = if sides & RIGHT != 0 { i + 1 } else { i };
             let up_ok = up == NONE || (up as usize) < lowest_side;
             let down_ok = down == NONE || (down as usize > highest_side && (down as usize) < n);
-            if !(left_ok && right_ok && up_ok && down_ok) {
-                return bad(format!("stencil row {i} out of order or range"));
-            }
+            (!(left_ok && right_ok && up_ok && down_ok))
+                .then(|| SolveError::Assembly(format!("stencil row {i} out of order or range")))
+        });
+        if let Some(e) = first_bad {
+            return Err(e);
         }
         // Stored rows keep their own diagonal.
         let mut diag = s.diag;
