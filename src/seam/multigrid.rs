@@ -231,25 +231,24 @@ impl Hierarchy {
         }
         let mut s = vec![0.0; rows.len() * ch];
         a.residual_rows(rows, r, z, &mut s, ch);
-        let parts: Vec<Vec<f64>> = self
-            .exact_block
-            .par_iter()
-            .map(|p| {
-                let mut b = Vec::with_capacity(p.rows.len() * ch);
-                for &k in &p.rows {
-                    b.extend_from_slice(&s[k as usize * ch..(k as usize + 1) * ch]);
-                }
-                p.factor.solve_interleaved(&b, ch)
-            })
-            .collect();
-        for (p, d) in self.exact_block.iter().zip(parts) {
+        assert!(rows.iter().all(|&i| (i as usize + 1) * ch <= z.len()));
+        let shared = Shared(z.as_mut_ptr());
+        self.exact_block.par_iter().for_each(|p| {
+            let mut b = Vec::with_capacity(p.rows.len() * ch);
+            for &k in &p.rows {
+                b.extend_from_slice(&s[k as usize * ch..(k as usize + 1) * ch]);
+            }
+            let d = p.factor.solve_interleaved(&b, ch);
             for (m, &k) in p.rows.iter().enumerate() {
                 let i = rows[k as usize] as usize;
                 for c in 0..ch {
-                    z[i * ch + c] += d[m * ch + c];
+                    // SAFETY: in bounds (asserted above), and each exact row
+                    // belongs to one part (`BlockPart::split`), so no two
+                    // tasks touch the same entry; `z` is exclusively borrowed.
+                    unsafe { *shared.get().add(i * ch + c) += d[m * ch + c] };
                 }
             }
-        }
+        });
     }
 
     /// z = M⁻¹ r, one V-cycle from level `l` down; `z` must be zero on entry.
@@ -434,7 +433,8 @@ impl Sweep {
     }
 }
 
-/// A pointer that may cross threads; see the one use in [`Sweep::run`].
+/// A pointer that may cross threads, for tasks that write disjoint entries
+/// (see [`Sweep::run`] and [`Hierarchy::exact_correction`]).
 #[derive(Clone, Copy)]
 struct Shared(*mut f64);
 unsafe impl Send for Shared {}
