@@ -231,7 +231,7 @@ impl Hierarchy {
         }
         let mut s = vec![0.0; rows.len() * ch];
         a.residual_rows(rows, r, z, &mut s, ch);
-        assert!(rows.iter().all(|&i| (i as usize + 1) * ch <= z.len()));
+        assert!(z.len() >= a.n() * ch);
         let shared = Shared(z.as_mut_ptr());
         self.exact_block.par_iter().for_each(|p| {
             let mut b = Vec::with_capacity(p.rows.len() * ch);
@@ -242,9 +242,11 @@ impl Hierarchy {
             for (m, &k) in p.rows.iter().enumerate() {
                 let i = rows[k as usize] as usize;
                 for c in 0..ch {
-                    // SAFETY: in bounds (asserted above), and each exact row
-                    // belongs to one part (`BlockPart::split`), so no two
-                    // tasks touch the same entry; `z` is exclusively borrowed.
+                    // SAFETY: in bounds (the level's exact rows are below its
+                    // n, `Hierarchy::new`; z's length asserted above), and
+                    // each exact row belongs to one part (`BlockPart::split`),
+                    // so no two tasks touch the same entry; `z` is
+                    // exclusively borrowed.
                     unsafe { *shared.get().add(i * ch + c) += d[m * ch + c] };
                 }
             }

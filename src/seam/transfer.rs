@@ -328,6 +328,19 @@ impl Transfer {
         }
     }
 
+    /// (Pᵀ r) at coarse unknown `k`, with `r` holding fine unknowns from `first` on.
+    #[inline(always)]
+    fn gather<const C: usize>(&self, k: usize, r: &[f64], first: usize) -> [f64; C] {
+        let mut s = [0.0f64; C];
+        self.for_each_fine(k, |i, w| {
+            let ri = &r[(i - first) * C..(i - first + 1) * C];
+            for c in 0..C {
+                s[c] += w * ri[c];
+            }
+        });
+        s
+    }
+
     /// rc = Pᵀ r.
     pub fn restrict(&self, r: &[f64], rc: &mut [f64], ch: usize) {
         by_channels!(ch, self.restrict_n(r, rc))
@@ -338,14 +351,7 @@ impl Transfer {
             .enumerate()
             .for_each(|(b, out)| {
                 for (k, o) in out.chunks_exact_mut(C).enumerate() {
-                    let mut s = [0.0f64; C];
-                    self.for_each_fine(b * CHUNK + k, |i, w| {
-                        let ri = &r[i * C..(i + 1) * C];
-                        for c in 0..C {
-                            s[c] += w * ri[c];
-                        }
-                    });
-                    o.copy_from_slice(&s);
+                    o.copy_from_slice(&self.gather::<C>(b * CHUNK + k, r, 0));
                 }
             });
     }
@@ -354,8 +360,9 @@ impl Transfer {
     /// computes the span of fine rows its coarse unknowns read (coarse
     /// unknowns are numbered in the order fine ones first reach them, so a
     /// run of them reads a run of fine rows, give or take two lattice rows;
-    /// [`Self::coarsen`] finds the spans) and restricts from there. The same bits as [`Self::restrict`] on the
-    /// residual, one pass and one fine vector less.
+    /// [`Self::coarsen`] finds the spans) and restricts from there. The same
+    /// bits as [`Self::restrict`] on the residual, one pass and one fine
+    /// vector less.
     pub fn restrict_residual<A: Rows>(
         &self,
         a: &A,
@@ -381,14 +388,7 @@ impl Transfer {
                 res.resize((hi - lo) * C, 0.0);
                 a.residual_span(lo..hi, r, z, res, C);
                 for (k, o) in out.chunks_exact_mut(C).enumerate() {
-                    let mut s = [0.0f64; C];
-                    self.for_each_fine(b * SPAN_CHUNK + k, |i, w| {
-                        let ri = &res[(i - lo) * C..(i - lo + 1) * C];
-                        for c in 0..C {
-                            s[c] += w * ri[c];
-                        }
-                    });
-                    o.copy_from_slice(&s);
+                    o.copy_from_slice(&self.gather::<C>(b * SPAN_CHUNK + k, res, lo));
                 }
             });
     }
