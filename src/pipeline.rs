@@ -215,7 +215,7 @@ fn erase_level(
             tex.channels,
             &seams,
             &classes,
-            &EraseOptions::new(opts.mode),
+            &EraseOptions::new(opts.mode).stored_at(tex.encoding.bits),
         )
         .map_err(|source| PipelineError::Erase {
             name: b.name.clone(),
