@@ -29,7 +29,7 @@ use rayon::prelude::*;
 
 use super::assemble::{assemble, Weights};
 use super::grid::TexelGrid;
-use super::multigrid::{self, CgVectors, Hierarchy, Node};
+use super::multigrid::{self, Node};
 use super::quadrature::{seam_derivative_points, seam_difference_points, QuadPoint, Segment};
 use super::sparse::Rows;
 use super::system::{Cholesky, SolveError};
@@ -512,13 +512,7 @@ fn solve_band(
     let x = match placed {
         None => Cholesky::new(&a.to_csr()?.to_faer())?.solve_interleaved(&b, ch),
         Some((nodes, x0)) => {
-            let (m, vectors) = Hierarchy::new_beside(a, nodes, || CgVectors::new(n, ch))?;
-            tracing::debug!(
-                rss_mb = crate::heap::resident_mb(),
-                elapsed_ms = t0.elapsed().as_millis() as u64,
-                "multigrid hierarchy built"
-            );
-            let (x, iterations) = multigrid::solve(&m, b, ch, x0, vectors)?;
+            let (x, iterations) = multigrid::solve(a, nodes, b, ch, x0)?;
             tracing::debug!(
                 rss_mb = crate::heap::resident_mb(),
                 elapsed_ms = t0.elapsed().as_millis() as u64,

@@ -67,11 +67,11 @@ pub struct Hierarchy {
     /// The finest operator, level 0.
     fine: StencilMatrix,
     /// The operators of levels 1 to L − 1, where L = `transfers.len()` is
-    /// the coarsest level (only its factor is kept; L = 0 factors the fine one).
+    /// the coarsest level (its factor is kept apart, see [`solve`]; L = 0
+    /// factors the fine one).
     coarse: Vec<SymCsr>,
     /// `transfers[l]` prolongs from level l+1 to level l.
     transfers: Vec<Transfer>,
-    coarsest: Cholesky,
     /// The exact nodes of each level above the coarsest, and the factor of
     /// their block, which is the same on every level (P is the identity there).
     exact: Vec<Vec<u32>>,
@@ -81,18 +81,10 @@ pub struct Hierarchy {
 }
 
 impl Hierarchy {
-    /// Builds the levels below `fine`, whose unknowns sit at `nodes`.
-    pub fn new(fine: StencilMatrix, nodes: Vec<Node>) -> Result<Self, SolveError> {
-        Ok(Self::new_beside(fine, nodes, || ())?.0)
-    }
-
-    /// As [`Self::new`], and runs `beside` on the thread that the coarsest
-    /// factorisation's ordering, which is serial, leaves idle.
-    pub fn new_beside<T: Send>(
-        fine: StencilMatrix,
-        nodes: Vec<Node>,
-        beside: impl FnOnce() -> T + Send,
-    ) -> Result<(Self, T), SolveError> {
+    /// Builds the levels below `fine`, whose unknowns sit at `nodes`, and
+    /// returns the coarsest level's operator, to be factored, beside them.
+    /// The exact block is not factored yet (see [`Self::factor_exact_block`]).
+    fn new(fine: StencilMatrix, nodes: Vec<Node>) -> Result<(Self, SymCsr), SolveError> {
         let t = std::time::Instant::now();
         let mut coarse: Vec<SymCsr> = Vec::new();
         let mut transfers = Vec::new();
@@ -164,33 +156,6 @@ impl Hierarchy {
             None => fine.to_csr()?,
         };
         last.shift_diagonal(COARSE_SHIFT, |i| nodes[i] != Node::Exact);
-        // The two factorisations are independent; the coarsest one's ordering
-        // runs on one thread, so the exact block's parts and `beside` take
-        // the other.
-        let ((exact_block, side), coarsest) = rayon::join(
-            || {
-                rayon::join(
-                    || {
-                        let tb = std::time::Instant::now();
-                        let block = match exact.first() {
-                            Some(rows) if !rows.is_empty() => {
-                                BlockPart::split(&fine.submatrix(rows)?)?
-                            }
-                            _ => Vec::new(),
-                        };
-                        tracing::debug!(
-                            rss_mb = crate::heap::resident_mb(),
-                            elapsed_ms = tb.elapsed().as_millis() as u64,
-                            "exact block factored"
-                        );
-                        Ok::<_, SolveError>(block)
-                    },
-                    beside,
-                )
-            },
-            || Cholesky::new(&last.to_faer()),
-        );
-        let (exact_block, coarsest) = (exact_block?, coarsest?);
         tracing::debug!(
             rss_mb = crate::heap::resident_mb(),
             levels = transfers.len() + 1,
@@ -198,19 +163,32 @@ impl Hierarchy {
             coarsest = last.n,
             coarsest_exact = nodes.iter().filter(|n| **n == Node::Exact).count(),
             galerkin_ms = galerkin.as_millis() as u64,
-            factor_ms = (t.elapsed() - galerkin).as_millis() as u64,
-            "multigrid hierarchy"
+            "multigrid levels"
         );
         let h = Hierarchy {
             fine,
             coarse,
             transfers,
-            coarsest,
             exact,
-            exact_block,
+            exact_block: Vec::new(),
             sweeps,
         };
-        Ok((h, side))
+        Ok((h, last))
+    }
+
+    /// Factors the exact nodes' block (the same on every level).
+    fn factor_exact_block(&mut self) -> Result<(), SolveError> {
+        let tb = std::time::Instant::now();
+        self.exact_block = match self.exact.first() {
+            Some(rows) if !rows.is_empty() => BlockPart::split(&self.fine.submatrix(rows)?)?,
+            _ => Vec::new(),
+        };
+        tracing::debug!(
+            rss_mb = crate::heap::resident_mb(),
+            elapsed_ms = tb.elapsed().as_millis() as u64,
+            "exact block factored"
+        );
+        Ok(())
     }
 
     /// z += the exact correction on level `l`'s exact nodes, the rest held.
@@ -253,21 +231,34 @@ impl Hierarchy {
         });
     }
 
-    /// z = M⁻¹ r, one V-cycle from level `l` down; `z` must be zero on entry.
-    fn vcycle(&self, l: usize, r: &[f64], z: &mut [f64], ws: &mut [Work], ch: usize) {
-        match l {
-            _ if l == self.transfers.len() => {
-                z.copy_from_slice(&self.coarsest.solve_interleaved(r, ch));
-            }
-            0 => self.smooth(&self.fine, l, r, z, ws, ch),
-            _ => self.smooth(&self.coarse[l - 1], l, r, z, ws, ch),
-        }
+    /// z = M⁻¹ r, one V-cycle; `z` must be zero on entry.
+    fn vcycle(&self, coarsest: &Cholesky, r: &[f64], z: &mut [f64], ws: &mut [Work], ch: usize) {
+        self.descend(0, r, z, ws, ch);
+        self.ascend(coarsest, 0, r, z, ws, ch);
     }
 
-    /// The V-cycle's work on level `l` (operator `a`) above the coarsest.
-    fn smooth<A: Rows>(
+    /// The V-cycle's way down from level `l` (right-hand side `r`, `z` zero):
+    /// on each level above the coarsest, pre-smoothing and the restriction of
+    /// the residual into `ws`. Needs no coarsest factor, so the first cycle
+    /// runs it while that factor is being made (see [`solve`]).
+    fn descend(&self, l: usize, r: &[f64], z: &mut [f64], ws: &mut [Work], ch: usize) {
+        let Some((w, rest)) = ws.split_first_mut() else {
+            return;
+        };
+        match l {
+            0 => self.presmooth(&self.fine, l, r, z, &mut w.coarse_rhs, ch),
+            _ => self.presmooth(&self.coarse[l - 1], l, r, z, &mut w.coarse_rhs, ch),
+        }
+        w.coarse_z.par_chunks_mut(CHUNK).for_each(|c| c.fill(0.0));
+        self.descend(l + 1, &w.coarse_rhs, &mut w.coarse_z, rest, ch);
+    }
+
+    /// The way back up to level `l` after [`Self::descend`]: the coarsest
+    /// solve, then on each level the prolonged correction and post-smoothing
+    /// (the pre-smoothing's steps in reverse, so the cycle stays symmetric).
+    fn ascend(
         &self,
-        a: &A,
+        coarsest: &Cholesky,
         l: usize,
         r: &[f64],
         z: &mut [f64],
@@ -275,15 +266,32 @@ impl Hierarchy {
         ch: usize,
     ) {
         let Some((w, rest)) = ws.split_first_mut() else {
+            z.copy_from_slice(&coarsest.solve_interleaved(r, ch));
             return;
         };
-        let p = &self.transfers[l];
+        self.ascend(coarsest, l + 1, &w.coarse_rhs, &mut w.coarse_z, rest, ch);
+        self.transfers[l].prolong_add(&w.coarse_z, z, ch);
+        match l {
+            0 => self.postsmooth(&self.fine, l, r, z, ch),
+            _ => self.postsmooth(&self.coarse[l - 1], l, r, z, ch),
+        }
+    }
+
+    fn presmooth<A: Rows>(
+        &self,
+        a: &A,
+        l: usize,
+        r: &[f64],
+        z: &mut [f64],
+        coarse_rhs: &mut [f64],
+        ch: usize,
+    ) {
         self.sweeps[l].run(a, r, z, ch, true);
         self.exact_correction(a, l, r, z, ch);
-        p.restrict_residual(a, r, z, &mut w.coarse_rhs, ch);
-        w.coarse_z.par_chunks_mut(CHUNK).for_each(|c| c.fill(0.0));
-        self.vcycle(l + 1, &w.coarse_rhs, &mut w.coarse_z, rest, ch);
-        p.prolong_add(&w.coarse_z, z, ch);
+        self.transfers[l].restrict_residual(a, r, z, coarse_rhs, ch);
+    }
+
+    fn postsmooth<A: Rows>(&self, a: &A, l: usize, r: &[f64], z: &mut [f64], ch: usize) {
         self.exact_correction(a, l, r, z, ch);
         self.sweeps[l].run(a, r, z, ch, false);
     }
@@ -480,63 +488,80 @@ fn dots<const C: usize>(u: &[f64], v: &[f64]) -> [f64; 4] {
     d
 }
 
-/// CG's two vectors besides x and b, made ahead: on a 2048² band they are
-/// about 100 MB, whose page faults [`Hierarchy::new_beside`] can take on a
-/// thread that would otherwise wait.
-pub struct CgVectors {
-    zq: Vec<f64>,
-    p: Vec<f64>,
-}
-
-impl CgVectors {
-    pub fn new(n: usize, ch: usize) -> Self {
-        CgVectors {
-            zq: crate::heap::filled(n * ch, 0.0),
-            p: crate::heap::filled(n * ch, 0.0),
-        }
-    }
-}
-
-/// Solves A x = b (`ch` ≤ 4 interleaved channels) by CG preconditioned with
-/// one V-cycle of `m`, from the guess `x0`, in `v` (of A's size).
-/// Returns x and the iteration count.
+/// Solves A x = b (`ch` ≤ 4 interleaved channels), A = `fine` with its
+/// unknowns at `nodes`, by CG preconditioned with one V-cycle of the
+/// hierarchy built for it, from the guess `x0`. Returns x and the iteration
+/// count.
 ///
 /// `b` is taken by value and becomes the residual: on a 2048² band each
 /// vector is about 50 MB, and each megabyte a process touches for the first
 /// time costs a page fault per page.
 pub fn solve(
-    m: &Hierarchy,
+    fine: StencilMatrix,
+    nodes: Vec<Node>,
     b: Vec<f64>,
     ch: usize,
     x0: Vec<f64>,
-    v: CgVectors,
 ) -> Result<(Vec<f64>, usize), SolveError> {
-    by_channels!(ch, solve_n(m, b, x0, v))
+    by_channels!(ch, solve_n(fine, nodes, b, x0))
+}
+
+/// CG's state once its first V-cycle has come down to the coarsest level.
+struct Start {
+    bb: [f64; 4],
+    r: Vec<f64>,
+    zq: Vec<f64>,
+    p: Vec<f64>,
+    ws: Vec<Work>,
 }
 
 fn solve_n<const C: usize>(
-    m: &Hierarchy,
+    fine: StencilMatrix,
+    nodes: Vec<Node>,
     b: Vec<f64>,
     x0: Vec<f64>,
-    v: CgVectors,
 ) -> Result<(Vec<f64>, usize), SolveError> {
     let ch = C;
-    let a = &m.fine;
-    let n = a.n();
-    let mut x = x0;
-    let bb = dots::<C>(&b, &b);
-    let mut r = b;
-    a.residual_in_place(&mut r, &x, ch);
-    let mut ws = m.workspace(ch);
-    // `zq` holds the preconditioned residual z, and A p in its turn: A p is
-    // spent on updating x and r before the next V-cycle writes z.
-    let CgVectors { mut zq, mut p } = v;
-    assert!(
-        zq.len() == n * ch && p.len() == n * ch,
-        "CG vectors of the wrong size"
+    let (mut m, last) = Hierarchy::new(fine, nodes)?;
+    let t = std::time::Instant::now();
+    // The coarsest factorisation (its ordering and its numeric phase) runs on
+    // one thread; the other factors the exact block, which the V-cycle's way
+    // down needs, and takes CG as far as the coarsest solve of its first cycle.
+    let (coarsest, start) = rayon::join(
+        || Cholesky::new(&last.to_faer()),
+        || {
+            m.factor_exact_block()?;
+            let n = m.fine.n();
+            let bb = dots::<C>(&b, &b);
+            let mut r = b;
+            m.fine.residual_in_place(&mut r, &x0, ch);
+            let mut ws = m.workspace(ch);
+            // `zq` holds the preconditioned residual z, and A p in its turn: A p
+            // is spent on updating x and r before the next V-cycle writes z.
+            let mut zq = crate::heap::filled(n * ch, 0.0);
+            let p = crate::heap::filled(n * ch, 0.0);
+            m.descend(0, &r, &mut zq, &mut ws, ch);
+            Ok::<_, SolveError>(Start { bb, r, zq, p, ws })
+        },
     );
-    // The V-cycle wants zq zero: fresh from `CgVectors::new`.
-    m.vcycle(0, &r, &mut zq, &mut ws, ch);
+    drop(last);
+    let (coarsest, start) = (coarsest?, start?);
+    tracing::debug!(
+        rss_mb = crate::heap::resident_mb(),
+        elapsed_ms = t.elapsed().as_millis() as u64,
+        "coarsest level factored"
+    );
+    let Start {
+        bb,
+        mut r,
+        mut zq,
+        mut p,
+        mut ws,
+    } = start;
+    let m = &m;
+    let a = &m.fine;
+    let mut x = x0;
+    m.ascend(&coarsest, 0, &r, &mut zq, &mut ws, ch);
     p.par_chunks_mut(CHUNK * ch)
         .zip(zq.par_chunks(CHUNK * ch))
         .for_each(|(p, z)| p.copy_from_slice(z));
@@ -606,7 +631,7 @@ fn solve_n<const C: usize>(
                 });
             return Ok((x, it));
         }
-        m.vcycle(0, &r, &mut zq, &mut ws, ch);
+        m.vcycle(&coarsest, &r, &mut zq, &mut ws, ch);
         let rz_new = dots::<C>(&r, &zq);
         let mut beta = [0.0f64; 4];
         for c in 0..ch {
@@ -728,9 +753,10 @@ mod tests {
         a.apply(&x_true, &mut b, 3);
         let fine = StencilMatrix::from_csr(&a, -1.0).unwrap();
         assert!(fine.stored_rows() > 0 && fine.stored_rows() < 20);
-        let m = Hierarchy::new(fine, nodes).unwrap();
+        let (m, _) = Hierarchy::new(fine, nodes.clone()).unwrap();
         assert!(m.transfers.len() >= 2, "{} levels", m.transfers.len() + 1);
-        let (x, _) = solve(&m, b, 3, vec![0.0; n * 3], CgVectors::new(n, 3)).unwrap();
+        let fine = StencilMatrix::from_csr(&a, -1.0).unwrap();
+        let (x, _) = solve(fine, nodes, b, 3, vec![0.0; n * 3]).unwrap();
         let worst = x
             .iter()
             .zip(&x_true)
