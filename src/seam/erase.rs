@@ -467,14 +467,8 @@ fn solve_band(
     solver: Solver,
     start: &[f32],
 ) -> Result<(Vec<f32>, usize), EraseError> {
-    let mut unknown = crate::heap::filled(grid.len(), u32::MAX);
-    let mut n = 0u32;
-    for (t, _) in band.iter().enumerate().filter(|(_, b)| **b) {
-        unknown[t] = n;
-        n += 1;
-    }
-    let n = n as usize;
     let t0 = std::time::Instant::now();
+    let (unknown, n) = number_band(band);
     let weights = Weights {
         change,
         free_anchor: change * 1e-6,
@@ -533,6 +527,38 @@ fn solve_band(
             }
         });
     Ok((out, n))
+}
+
+/// Texels per parallel task of [`number_band`].
+const NUMBER_CHUNK: usize = 1 << 16;
+
+/// Numbers the band's texels in texel order (`u32::MAX` outside it): each
+/// chunk counts its texels, then numbers them from the sum before it.
+fn number_band(band: &[bool]) -> (Vec<u32>, usize) {
+    let counts: Vec<u32> = band
+        .par_chunks(NUMBER_CHUNK)
+        .map(|b| b.iter().filter(|&&b| b).count() as u32)
+        .collect();
+    let firsts: Vec<u32> = counts
+        .iter()
+        .scan(0u32, |sum, &c| {
+            let first = *sum;
+            *sum += c;
+            Some(first)
+        })
+        .collect();
+    let mut unknown = crate::heap::filled(band.len(), u32::MAX);
+    unknown
+        .par_chunks_mut(NUMBER_CHUNK)
+        .zip(band.par_chunks(NUMBER_CHUNK))
+        .zip(firsts)
+        .for_each(|((u, b), mut next)| {
+            for (u, _) in u.iter_mut().zip(b).filter(|(_, &inside)| inside) {
+                *u = next;
+                next += 1;
+            }
+        });
+    (unknown, counts.iter().map(|&c| c as usize).sum())
 }
 
 /// Texel rows per parallel task of [`place_nodes`].
