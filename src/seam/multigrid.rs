@@ -511,7 +511,6 @@ struct Start {
     bb: [f64; 4],
     r: Vec<f64>,
     zq: Vec<f64>,
-    p: Vec<f64>,
     ws: Vec<Work>,
 }
 
@@ -525,13 +524,17 @@ fn solve_n<const C: usize>(
     let (mut m, last) = Hierarchy::new(fine, nodes)?;
     let t = std::time::Instant::now();
     // The coarsest factorisation (its ordering and its numeric phase) runs on
-    // one thread; the other factors the exact block, which the V-cycle's way
-    // down needs, and takes CG as far as the coarsest solve of its first cycle.
-    let (coarsest, start) = rayon::join(
-        || Cholesky::new(&last.to_faer()),
+    // one thread, and then makes CG's search direction; the other factors the
+    // exact block, which the V-cycle's way down needs, and takes CG as far as
+    // the coarsest solve of its first cycle.
+    let n = m.fine.n();
+    let ((coarsest, mut p), start) = rayon::join(
+        || {
+            let f = Cholesky::new(&last.to_faer());
+            (f, crate::heap::filled(n * ch, 0.0))
+        },
         || {
             m.factor_exact_block()?;
-            let n = m.fine.n();
             let bb = dots::<C>(&b, &b);
             let mut r = b;
             m.fine.residual_in_place(&mut r, &x0, ch);
@@ -539,9 +542,8 @@ fn solve_n<const C: usize>(
             // `zq` holds the preconditioned residual z, and A p in its turn: A p
             // is spent on updating x and r before the next V-cycle writes z.
             let mut zq = crate::heap::filled(n * ch, 0.0);
-            let p = crate::heap::filled(n * ch, 0.0);
             m.descend(0, &r, &mut zq, &mut ws, ch);
-            Ok::<_, SolveError>(Start { bb, r, zq, p, ws })
+            Ok::<_, SolveError>(Start { bb, r, zq, ws })
         },
     );
     drop(last);
@@ -555,7 +557,6 @@ fn solve_n<const C: usize>(
         bb,
         mut r,
         mut zq,
-        mut p,
         mut ws,
     } = start;
     let m = &m;
