@@ -33,8 +33,8 @@ use super::system::{Cholesky, SolveError};
 use super::transfer::Transfer;
 
 /// CG stops when the error it leaves is estimated below this (in [0,1]
-/// units: 5e-4 of an 8-bit level, half the band's default tolerance, so the
-/// two errors together stay below a 16-bit step, 1/257 of a level). The
+/// units: 5e-4 of an 8-bit level, a twentieth of the band's default
+/// tolerance for 8-bit output, and an eighth of a 16-bit step). The
 /// preconditioned iteration contracts the error by a steady ratio ρ per step
 /// (measured as the ratio of successive largest steps), so what remains after
 /// a step of size s is about s·ρ/(1 − ρ).
