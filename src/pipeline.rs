@@ -215,7 +215,10 @@ fn erase_level(
             tex.channels,
             &seams,
             &classes,
-            &EraseOptions::new(opts.mode).stored_at(tex.encoding.bits),
+            &EraseOptions {
+                levels: f64::from(tex.encoding.max_value()),
+                ..EraseOptions::new(opts.mode)
+            },
         )
         .map_err(|source| PipelineError::Erase {
             name: b.name.clone(),
@@ -244,7 +247,7 @@ fn erase_level(
         data,
         encoding: tex.encoding,
     };
-    let stored = like(quantized(&data, tex.encoding.bits));
+    let stored = like(quantized(&data, tex.encoding.max_value()));
     let float = like(data);
     Ok(ErasedLevel {
         grid,
@@ -259,8 +262,8 @@ fn erase_level(
 }
 
 /// Rounds to what the output file stores, so every metric describes the file.
-fn quantized(data: &[f32], bits: u8) -> Vec<f32> {
-    let levels = ((1u32 << bits) - 1) as f32;
+fn quantized(data: &[f32], max_value: u32) -> Vec<f32> {
+    let levels = max_value as f32;
     data.par_iter()
         .map(|v| (v.clamp(0.0, 1.0) * levels).round() / levels)
         .collect()

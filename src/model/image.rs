@@ -14,6 +14,13 @@ pub struct TextureEncoding {
     pub bits: u8,
 }
 
+impl TextureEncoding {
+    /// The largest stored value: 255 for 8 bits, 65535 for 16.
+    pub fn max_value(&self) -> u32 {
+        (1u32 << self.bits) - 1
+    }
+}
+
 /// A texture as the seam engine sees it: row-major texels, `channels` f32
 /// values in [0,1] each, in the image's stored encoding (no sRGB decode).
 #[derive(Clone, Debug, PartialEq)]

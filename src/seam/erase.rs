@@ -105,14 +105,6 @@ impl EraseOptions {
             solver: Solver::Auto,
         }
     }
-
-    /// Options for an output stored with `bits` per channel.
-    pub fn stored_at(self, bits: u8) -> Self {
-        EraseOptions {
-            levels: ((1u32 << bits) - 1) as f64,
-            ..self
-        }
-    }
 }
 
 /// What the solve did, for reports and benchmarks.
