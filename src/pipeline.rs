@@ -265,7 +265,13 @@ fn erase_level(
 fn quantized(data: &[f32], max_value: u32) -> Vec<f32> {
     let levels = max_value as f32;
     data.par_iter()
-        .map(|v| (v.clamp(0.0, 1.0) * levels).round() / levels)
+        .map(|v| {
+            let x = v.clamp(0.0, 1.0) * levels;
+            // `f32::round` is a library call on baseline x86-64 (a fifth of
+            // this loop's time). For x ≥ 0, adding ½ in f64 is exact, so
+            // truncating rounds half away from zero as it does.
+            (f64::from(x) + 0.5) as u32 as f32 / levels
+        })
         .collect()
 }
 
