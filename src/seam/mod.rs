@@ -2,6 +2,7 @@
 //! masking baseline, all on one texel grid.
 
 pub mod assemble;
+pub mod coarse;
 pub mod erase;
 pub mod grid;
 pub mod masking;

@@ -21,12 +21,14 @@
 //! iterations to 9 and blub from 7 to 5.
 //!
 //! Coarse operators are Galerkin products PᵀAP, so every level describes the
-//! same energy. A V-cycle whose post-smoother reverses its pre-smoother is a
+//! same energy. Levels above the coarsest keep most rows in closed form
+//! ([`CoarseMatrix`]); the coarsest, to be factored, is in compressed rows. A V-cycle whose post-smoother reverses its pre-smoother is a
 //! symmetric preconditioner, and CG turns it into the solution of the fine
 //! system to the tolerance below: the hierarchy decides only how fast.
 
 use rayon::prelude::*;
 
+use super::coarse::CoarseMatrix;
 use super::sparse::{by_channels, Rows, SymCsr};
 use super::stencil::StencilMatrix;
 use super::system::{Cholesky, SolveError};
@@ -69,7 +71,7 @@ pub struct Hierarchy {
     /// The operators of levels 1 to L − 1, where L = `transfers.len()` is
     /// the coarsest level (its factor is kept apart, see [`solve`]; L = 0
     /// factors the fine one).
-    coarse: Vec<SymCsr>,
+    coarse: Vec<CoarseMatrix>,
     /// `transfers[l]` prolongs from level l+1 to level l.
     transfers: Vec<Transfer>,
     /// The exact nodes of each level above the coarsest, and the factor of
@@ -86,7 +88,8 @@ impl Hierarchy {
     /// The exact block is not factored yet (see [`Self::factor_exact_block`]).
     fn new(fine: StencilMatrix, nodes: Vec<Node>) -> Result<(Self, SymCsr), SolveError> {
         let t = std::time::Instant::now();
-        let mut coarse: Vec<SymCsr> = Vec::new();
+        let mut coarse: Vec<CoarseMatrix> = Vec::new();
+        let mut last: Option<SymCsr> = None;
         let mut transfers = Vec::new();
         let mut nodes = nodes;
         let mut exact = Vec::new();
@@ -100,14 +103,9 @@ impl Hierarchy {
                 .filter(|(_, n)| **n == Node::Exact)
                 .map(|(i, _)| i as u32)
                 .collect();
-            let (exact_count, lattice) = (exact_rows.len(), nodes.len() - exact_rows.len());
+            let exact_count = exact_rows.len();
             exact.push(exact_rows);
-            // Every level carries all the exact nodes, and the coarsest factor
-            // must take them anyway; once the lattice is no larger than they
-            // are, factoring it too costs little, while coarser lattices
-            // approximate the ties near the seams ever worse. Stopping there
-            // takes Fox from 8 CG iterations to 5 and blub (global) from 8 to 3.
-            if lattice <= COARSEST_LATTICE.max(exact_count) {
+            if is_coarsest(nodes.len(), exact_count) {
                 break;
             }
             // Both walk the level's rows on one thread: side by side.
@@ -127,22 +125,36 @@ impl Hierarchy {
             );
             sweeps.push(sweep);
             let tl = std::time::Instant::now();
-            let (ac, next_tensor) = match coarse.last() {
-                Some(a) => a.galerkin_with(&transfer, true, tensor.as_ref())?,
-                None => fine.galerkin_with(&transfer, true, None)?,
+            let next_exact = next.iter().filter(|n| **n == Node::Exact).count();
+            let (rows, closed) = if is_coarsest(next.len(), next_exact) {
+                // To be factored: in compressed rows.
+                let (ac, _) = match coarse.last() {
+                    Some(a) => a.galerkin_with(&transfer, true, tensor.as_ref())?,
+                    None => fine.galerkin_with(&transfer, true, None)?,
+                };
+                let n = ac.n;
+                last = Some(ac);
+                (n, 0)
+            } else {
+                let (ac, next_tensor) = match coarse.last() {
+                    Some(a) => a.galerkin_closed(&transfer, tensor.as_ref())?,
+                    None => fine.galerkin_closed(&transfer, None)?,
+                };
+                tensor = next_tensor;
+                let counts = (ac.n(), ac.closed_rows());
+                coarse.push(ac);
+                counts
             };
-            tensor = next_tensor;
             tracing::debug!(
                 rss_mb = crate::heap::resident_mb(),
                 sweep_ms,
                 coarsen_ms,
                 galerkin_ms = tl.elapsed().as_millis() as u64,
-                rows = ac.n,
-                nnz = ac.col.len(),
+                rows,
+                closed,
                 "multigrid level"
             );
             transfers.push(transfer);
-            coarse.push(ac);
             nodes = next;
         }
         let galerkin = t.elapsed();
@@ -151,7 +163,7 @@ impl Hierarchy {
         // texel at a ragged band edge, which leaves the Galerkin operator
         // singular. A relative diagonal shift keeps the coarsest factor
         // positive definite; CG still converges to the unshifted fine solution.
-        let mut last = match coarse.pop() {
+        let mut last = match last {
             Some(a) => a,
             None => fine.to_csr()?,
         };
@@ -305,6 +317,17 @@ impl Hierarchy {
             })
             .collect()
     }
+}
+
+/// Whether a level of `n` unknowns, `exact` of them exact, is the coarsest.
+///
+/// Every level carries all the exact nodes, and the coarsest factor must
+/// take them anyway; once the lattice is no larger than they are, factoring
+/// it too costs little, while coarser lattices approximate the ties near the
+/// seams ever worse. Stopping there takes Fox from 8 CG iterations to 5 and
+/// blub (global) from 8 to 3.
+fn is_coarsest(n: usize, exact: usize) -> bool {
+    n - exact <= COARSEST_LATTICE.max(exact)
 }
 
 /// The exact block is split into this many parts, whole connected pieces
@@ -736,12 +759,30 @@ mod tests {
             }
         };
         same(&fast, &general);
+        // Kept in closed form, the rows list the same entries, to the bit.
+        let (closed, closed_tensor) = fine.galerkin_closed(&p, None).unwrap();
+        assert!(closed.closed_rows() > 30 * 20, "{}", closed.closed_rows());
+        let identical = |a: &SymCsr, b: &SymCsr| {
+            assert_eq!((&a.ptr, &a.col), (&b.ptr, &b.col));
+            assert!(a
+                .val
+                .iter()
+                .zip(&b.val)
+                .all(|(x, y)| x.to_bits() == y.to_bits()));
+        };
+        identical(&closed.to_csr().unwrap(), &fast);
+        assert_eq!(
+            closed_tensor.as_ref().map(|t| t.d.len()),
+            coarse_tensor.as_ref().map(|t| t.d.len())
+        );
         // And one level further, from the closed-form rows of the first.
         let coarse_tensor = coarse_tensor.expect("tensor rows carried down");
         assert!(coarse_tensor.d.iter().filter(|d| !d.is_nan()).count() > 10 * 5);
         let (p2, _) = Transfer::coarsen(&coarse_nodes);
         let (fast2, _) = fast.galerkin_with(&p2, true, Some(&coarse_tensor)).unwrap();
         same(&fast2, &general.galerkin(&p2, false).unwrap());
+        let (closed2, _) = closed.galerkin_closed(&p2, Some(&coarse_tensor)).unwrap();
+        identical(&closed2.to_csr().unwrap(), &fast2);
     }
 
     #[test]

@@ -9,6 +9,7 @@
 use faer::sparse::{SparseColMat, SymbolicSparseColMat};
 use rayon::prelude::*;
 
+use super::coarse::{Closed, CoarseMatrix};
 use super::system::SolveError;
 use super::transfer::{Square, Transfer};
 
@@ -254,6 +255,57 @@ pub trait Rows: Sync {
         lattice: bool,
         tensor: Option<&TensorRows>,
     ) -> Result<(SymCsr, Option<TensorRows>), SolveError> {
+        let (parts, coarse_tensor) = self.galerkin_parts(p, lattice, tensor, false);
+        let (ptr, col, val) = join_stored(parts.into_iter().map(|g| (g.lens, g.col, g.val)));
+        Ok((SymCsr::from_parts(ptr, col, val)?, coarse_tensor))
+    }
+
+    /// [`Self::galerkin_with`] on the lattice, keeping the rows with the
+    /// tensor form in closed form (see [`CoarseMatrix`]).
+    fn galerkin_closed(
+        &self,
+        p: &Transfer,
+        tensor: Option<&TensorRows>,
+    ) -> Result<(CoarseMatrix, Option<TensorRows>), SolveError> {
+        let (parts, coarse_tensor) = self.galerkin_parts(p, true, tensor, true);
+        let Some(t) = &coarse_tensor else {
+            let (ptr, col, val) = join_stored(parts.into_iter().map(|g| (g.lens, g.col, g.val)));
+            return Ok((
+                CoarseMatrix::from_csr(SymCsr::from_parts(ptr, col, val)?)?,
+                None,
+            ));
+        };
+        let form = CoarseMatrix::form(t);
+        let mut closed = Vec::new();
+        let mut stored = Vec::with_capacity(parts.len());
+        for g in parts {
+            closed.push(g.closed);
+            stored.push((g.lens, g.col, g.val));
+        }
+        let (ptr, col, val) = join_stored(stored.into_iter());
+        // The first part's rows were reserved for all (see `galerkin_rows`).
+        let mut closed = closed.into_iter();
+        let mut rows = closed.next().unwrap_or_default();
+        for c in closed {
+            rows.par_extend(c.into_par_iter());
+        }
+        Ok((
+            CoarseMatrix::from_parts(form, rows, ptr, col, val)?,
+            coarse_tensor,
+        ))
+    }
+
+    /// The Galerkin rows in one part per thread, and the coarse tensor rows.
+    /// With `closed`, a row with the tensor form whose 3×3 lattice points
+    /// are numbered in raster order is kept as its `d` and neighbours
+    /// (length 0 in the stored arrays).
+    fn galerkin_parts(
+        &self,
+        p: &Transfer,
+        lattice: bool,
+        tensor: Option<&TensorRows>,
+        closed: bool,
+    ) -> (Vec<GalerkinPart>, Option<TensorRows>) {
         let nc = p.coarse;
         // One task per thread: a few large parts are handed back to the
         // system once joined, where many small ones would stay in the heap.
@@ -269,50 +321,26 @@ pub trait Rows: Sync {
         } else {
             None
         };
-        let chunks: Vec<GalerkinPart> = (0..tasks)
+        let parts: Vec<GalerkinPart> = (0..tasks)
             .into_par_iter()
             .map(|b| {
                 let rows = (b * per).min(nc)..((b + 1) * per).min(nc);
                 // Room for every row in the first part: the others are appended to it.
                 let reserve = if b == 0 { nc } else { rows.len() };
-                self.galerkin_rows(p, rows, lattice, tensor, reserve)
+                self.galerkin_rows(p, rows, lattice, tensor, closed, reserve)
             })
             .collect();
         let coarse_tensor = tensor.map(|t| TensorRows {
-            d: chunks.iter().flat_map(|c| c.3.iter().copied()).collect(),
+            d: parts.iter().flat_map(|c| c.forms.iter().copied()).collect(),
             off: t.off,
             a: coarsen_1d(t.a),
             b: coarsen_1d(t.b),
         });
-        // The fine level's flags are spent: free them before the join copies.
-        drop(own);
-        let mut ptr = Vec::with_capacity(nc + 1);
-        ptr.push(0);
-        let total: usize = chunks.iter().map(|c| c.1.len()).sum();
-        // The first part's arrays were reserved for the whole (see
-        // `galerkin_rows`), so only the rest is copied, and into pages that
-        // no earlier array has touched.
-        let mut chunks = chunks.into_iter();
-        let (lens, mut col, mut val, _) = chunks.next().unwrap_or_default();
-        col.reserve_exact(total - col.len());
-        val.reserve_exact(total - val.len());
-        for l in lens {
-            ptr.push(ptr.last().copied().unwrap_or(0) + l);
-        }
-        for (lens, c, v, _) in chunks {
-            for l in lens {
-                ptr.push(ptr.last().copied().unwrap_or(0) + l);
-            }
-            // Into the reserved room, by all threads (see `heap::filled`).
-            col.par_extend(c.into_par_iter());
-            val.par_extend(v.into_par_iter());
-        }
-        Ok((SymCsr::from_parts(ptr, col, val)?, coarse_tensor))
+        (parts, coarse_tensor)
     }
 
-    /// Rows `rows` of Pᵀ A P: their lengths, columns and values (not
-    /// inlined: a symbol of its own in profiles), with room for `reserve`
-    /// rows in the arrays; and per row its `d` if it has the tensor form.
+    /// Rows `rows` of Pᵀ A P (not inlined: a symbol of its own in
+    /// profiles), with room for `reserve` rows in the arrays.
     ///
     /// A coarse lattice row whose nine fine rows all have the tensor form
     /// (`tensor`), with one `d`, has it too, and is written in closed form.
@@ -323,12 +351,19 @@ pub trait Rows: Sync {
         rows: std::ops::Range<usize>,
         lattice: bool,
         tensor: Option<&TensorRows>,
+        closed: bool,
         reserve: usize,
     ) -> GalerkinPart {
         let mut lens = Vec::with_capacity(rows.len());
         let mut forms = Vec::with_capacity(if tensor.is_some() { rows.len() } else { 0 });
-        // Bilinear coarsening keeps about nine entries a row. Reserved
-        // memory that is never written is never faulted in either.
+        let mut closed_rows = Vec::with_capacity(if closed && tensor.is_some() {
+            reserve
+        } else {
+            0
+        });
+        // Bilinear coarsening keeps about nine entries a row (closed-form
+        // rows none). Reserved memory that is never written is never
+        // faulted in either.
         let mut out_col = Vec::with_capacity(reserve * 10);
         let mut out_val = Vec::with_capacity(reserve * 10);
         let mut list: Vec<(u32, f64)> = Vec::new();
@@ -351,7 +386,9 @@ pub trait Rows: Sync {
             if tensor.is_some() {
                 forms.push(uniform.unwrap_or(f64::NAN));
             }
+            let mut kept = Closed::STORED;
             match (centre, uniform.zip(coarse)) {
+                (Some(c), Some((d, _))) if closed && closed_neighbours(p, c, k, d, &mut kept) => {}
                 (Some(c), Some((d, (a, b, off)))) => tensor_row(p, c, d, off, a, b, &mut list),
                 (Some(c), None) => {
                     galerkin_lattice_row(self, p, c, &fine[..len], &mut entries, &mut list)
@@ -365,6 +402,9 @@ pub trait Rows: Sync {
                     }
                 }
             }
+            if closed && tensor.is_some() {
+                closed_rows.push(kept);
+            }
             // Stable, so equal columns are summed in the order they came.
             list.sort_by_key(|e| e.0);
             for &(c, v) in &list {
@@ -377,8 +417,78 @@ pub trait Rows: Sync {
             }
             lens.push(out_col.len() - before);
         }
-        (lens, out_col, out_val, forms)
+        GalerkinPart {
+            lens,
+            col: out_col,
+            val: out_val,
+            forms,
+            closed: closed_rows,
+        }
     }
+}
+
+/// Joins per-part row lengths and entries into compressed rows. The first
+/// part's arrays were reserved for the whole (see `galerkin_rows`), so only
+/// the rest is copied, and into pages that no earlier array has touched.
+#[allow(clippy::type_complexity)]
+fn join_stored(
+    parts: impl Iterator<Item = (Vec<usize>, Vec<u32>, Vec<f64>)>,
+) -> (Vec<usize>, Vec<u32>, Vec<f64>) {
+    let parts: Vec<_> = parts.collect();
+    let rows: usize = parts.iter().map(|p| p.0.len()).sum();
+    let total: usize = parts.iter().map(|p| p.1.len()).sum();
+    let mut parts = parts.into_iter();
+    let (lens, mut col, mut val) = parts.next().unwrap_or_default();
+    col.reserve_exact(total - col.len());
+    val.reserve_exact(total - val.len());
+    let mut ptr = Vec::with_capacity(rows + 1);
+    ptr.push(0);
+    for l in lens {
+        ptr.push(ptr.last().copied().unwrap_or(0) + l);
+    }
+    for (lens, c, v) in parts {
+        for l in lens {
+            ptr.push(ptr.last().copied().unwrap_or(0) + l);
+        }
+        // Into the reserved room, by all threads (see `heap::filled`).
+        col.par_extend(c.into_par_iter());
+        val.par_extend(v.into_par_iter());
+    }
+    (ptr, col, val)
+}
+
+/// One task's Galerkin rows: per row its length in `col`/`val`, and its d
+/// where it has the tensor form (`forms`, empty without tensor rows); with
+/// closed-form rows asked for, per row its closed form or
+/// [`Closed::STORED`].
+pub struct GalerkinPart {
+    lens: Vec<usize>,
+    col: Vec<u32>,
+    val: Vec<f64>,
+    forms: Vec<f64>,
+    closed: Vec<Closed>,
+}
+
+/// The closed form of coarse row `k` at lattice point `[x, y]` into `out`,
+/// if its 3×3 lattice points are numbered in raster order (then the row's
+/// entries in that order are in column order, as [`Rows`] asks).
+#[inline]
+fn closed_neighbours(p: &Transfer, [x, y]: [u32; 2], k: usize, d: f64, out: &mut Closed) -> bool {
+    let mut at = [0u32; 9];
+    for dy in 0..3u32 {
+        for dx in 0..3u32 {
+            let (lx, ly) = ((x + dx).wrapping_sub(1), (y + dy).wrapping_sub(1));
+            at[(dy * 3 + dx) as usize] = lattice_index(p, lx, ly);
+        }
+    }
+    if at[4] as usize != k || at.windows(2).any(|w| w[0] >= w[1]) {
+        return false;
+    }
+    *out = Closed {
+        d,
+        around: [at[0], at[1], at[2], at[3], at[5], at[6], at[7], at[8]],
+    };
+    true
 }
 
 /// The entries of the Galerkin row of the coarse lattice node at `centre`
@@ -440,10 +550,6 @@ fn galerkin_lattice_row<A: Rows + ?Sized>(
         }
     }
 }
-
-/// One task's Galerkin rows: lengths, columns, values, and each row's `d`
-/// where it has the tensor form (empty without tensor rows).
-type GalerkinPart = (Vec<usize>, Vec<u32>, Vec<f64>, Vec<f64>);
 
 /// Rows of one level that are, over the 3×3 lattice nodes around them, the
 /// stencil d·(a⊗a) + off·(b⊗a + a⊗b): a and b are 1D three-point stencils
