@@ -30,9 +30,9 @@ pub struct Weights {
     pub grad: f64,
 }
 
-/// A seam block: up to eight unknowns and their dense coupling.
+/// A seam block: up to eight texels and their dense coupling.
 struct Block {
-    unknowns: [u32; 8],
+    texels: [u32; 8],
     len: usize,
     a: [[f64; 8]; 8],
 }
@@ -46,7 +46,7 @@ pub fn assemble(
     input: &[f32],
     channels: usize,
     classes: &TexelClasses,
-    points: &[QuadPoint],
+    seam: &SeamBlocks,
     unknown: &[u32],
     n: usize,
     w: &Weights,
@@ -54,10 +54,10 @@ pub fn assemble(
     let ch = channels;
     let mut rhs = crate::heap::filled(n * ch, 0.0f64);
     let ts = std::time::Instant::now();
-    let seam_rows = seam_entries(points, unknown, input, ch, n, &mut rhs);
+    let seam_rows = seam_entries(seam, unknown, ch, n, &mut rhs)?;
     tracing::debug!(
         elapsed_ms = ts.elapsed().as_millis() as u64,
-        points = points.len(),
+        points = seam.points,
         entries = seam_rows.len(),
         "seam entries"
     );
@@ -280,77 +280,125 @@ fn lattice_rows<const C: usize>(
     stored
 }
 
-/// The seam and C1 terms as sorted (row, col, value) entries of both
-/// triangles; their right-hand side (from texels held fixed) goes into `rhs`.
+/// The seam terms summed per cell pair: what the system takes from them that
+/// does not depend on the band. Every texel a seam term reads lies at a seam,
+/// which every band holds wherever it may move (see `erase`), so which taps
+/// are unknowns is known before the band is.
+pub struct SeamBlocks {
+    /// Keyed by texel; numbered by the band in [`seam_entries`].
+    blocks: Vec<Block>,
+    /// Right-hand side terms of the taps held at their input value, per
+    /// texel, in the order of the points (and summed in that order).
+    held: Vec<(u32, [f64; 4])>,
+    points: usize,
+}
+
+impl SeamBlocks {
+    /// Sums the points' outer products into one dense block per set of
+    /// movable texels, the held taps into right-hand side terms.
+    pub fn new(points: &[QuadPoint], movable: &[bool], input: &[f32], ch: usize) -> Self {
+        let mut blocks: Vec<Block> = Vec::new();
+        let mut held_terms = Vec::new();
+        let mut index: HashMap<[u32; 8], usize> = HashMap::new();
+        for q in points {
+            let mut free = [(u32::MAX, 0.0f64); 8];
+            let mut nfree = 0;
+            let mut offset = [0.0f64; 4];
+            let mut held = false;
+            for &(t, wt) in &q.taps {
+                if wt == 0.0 {
+                    continue;
+                }
+                if !movable[t as usize] {
+                    held = true;
+                    for (c, o) in offset[..ch].iter_mut().enumerate() {
+                        *o -= wt * f64::from(input[t as usize * ch + c]);
+                    }
+                } else if let Some(slot) = free[..nfree].iter_mut().find(|s| s.0 == t) {
+                    slot.1 += wt;
+                } else {
+                    free[nfree] = (t, wt);
+                    nfree += 1;
+                }
+            }
+            if nfree == 0 {
+                continue;
+            }
+            // Near the seams every tap is usually free: no terms then.
+            if held {
+                for &(t, wt) in &free[..nfree] {
+                    let mut b = [0.0f64; 4];
+                    for c in 0..ch {
+                        b[c] = q.weight * wt * offset[c];
+                    }
+                    held_terms.push((t, b));
+                }
+            }
+            let key = free.map(|f| f.0);
+            // The points of one cell pair come one after another: try the last block first.
+            let b = match blocks.last() {
+                Some(last) if last.texels == key => blocks.len() - 1,
+                _ => *index.entry(key).or_insert_with(|| {
+                    blocks.push(Block {
+                        texels: key,
+                        len: nfree,
+                        a: [[0.0; 8]; 8],
+                    });
+                    blocks.len() - 1
+                }),
+            };
+            let a = &mut blocks[b].a;
+            for k in 0..nfree {
+                for l in 0..nfree {
+                    a[k][l] += q.weight * free[k].1 * free[l].1;
+                }
+            }
+        }
+        SeamBlocks {
+            blocks,
+            held: held_terms,
+            points: points.len(),
+        }
+    }
+}
+
+/// The seam blocks' entries as (row, column, value) over the band's unknowns
+/// (`unknown`: per texel), sorted by row and column with duplicates summed,
+/// and their held terms added to `rhs`.
 fn seam_entries(
-    points: &[QuadPoint],
+    seam: &SeamBlocks,
     unknown: &[u32],
-    input: &[f32],
     ch: usize,
     n: usize,
     rhs: &mut [f64],
-) -> Vec<(u32, u32, f64)> {
-    let mut blocks: Vec<Block> = Vec::new();
-    let mut index: HashMap<[u32; 8], usize> = HashMap::new();
-    for q in points {
-        let mut free = [(u32::MAX, 0.0f64); 8];
-        let mut nfree = 0;
-        let mut offset = [0.0f64; 4];
-        let mut held = false;
-        for &(t, wt) in &q.taps {
-            if wt == 0.0 {
-                continue;
-            }
-            let u = unknown[t as usize];
-            if u == u32::MAX {
-                held = true;
-                for (c, o) in offset[..ch].iter_mut().enumerate() {
-                    *o -= wt * f64::from(input[t as usize * ch + c]);
-                }
-            } else if let Some(slot) = free[..nfree].iter_mut().find(|s| s.0 == u) {
-                slot.1 += wt;
-            } else {
-                free[nfree] = (u, wt);
-                nfree += 1;
+) -> Result<Vec<(u32, u32, f64)>, SolveError> {
+    let outside = |t: u32| SolveError::Assembly(format!("seam texel {t} lies outside the band"));
+    for &(t, b) in &seam.held {
+        let u = unknown[t as usize];
+        if u == NONE {
+            return Err(outside(t));
+        }
+        for c in 0..ch {
+            rhs[u as usize * ch + c] += b[c];
+        }
+    }
+    let mut blocks = Vec::with_capacity(seam.blocks.len());
+    for b in &seam.blocks {
+        let mut key = [NONE; 8];
+        for (k, &t) in b.texels[..b.len].iter().enumerate() {
+            key[k] = unknown[t as usize];
+            if key[k] == NONE {
+                return Err(outside(t));
             }
         }
-        if nfree == 0 {
-            continue;
-        }
-        // Near the seams every tap is usually free: no scattered writes then.
-        if held {
-            for &(u, wu) in &free[..nfree] {
-                for c in 0..ch {
-                    rhs[u as usize * ch + c] += q.weight * wu * offset[c];
-                }
-            }
-        }
-        let key = free.map(|f| f.0);
-        // The points of one cell pair come one after another: try the last block first.
-        let b = match blocks.last() {
-            Some(last) if last.unknowns == key => blocks.len() - 1,
-            _ => *index.entry(key).or_insert_with(|| {
-                blocks.push(Block {
-                    unknowns: key,
-                    len: nfree,
-                    a: [[0.0; 8]; 8],
-                });
-                blocks.len() - 1
-            }),
-        };
-        let a = &mut blocks[b].a;
-        for k in 0..nfree {
-            for l in 0..nfree {
-                a[k][l] += q.weight * free[k].1 * free[l].1;
-            }
-        }
+        blocks.push((key, b));
     }
     // A counting sort by row straight from the blocks, stable (each short
     // row is then sorted by column, stably), so equal entries are summed in
     // the order the points came.
     let mut start = vec![0u32; n + 1];
-    for b in &blocks {
-        for &u in &b.unknowns[..b.len] {
+    for (key, b) in &blocks {
+        for &u in &key[..b.len] {
             start[u as usize + 1] += b.len as u32;
         }
     }
@@ -359,10 +407,10 @@ fn seam_entries(
     }
     let mut by_row = vec![(0u32, 0.0f64); start[n] as usize];
     let mut next = start.clone();
-    for b in &blocks {
-        for (k, &u) in b.unknowns[..b.len].iter().enumerate() {
+    for (key, b) in &blocks {
+        for (k, &u) in key[..b.len].iter().enumerate() {
             let at = &mut next[u as usize];
-            for (l, &v) in b.unknowns[..b.len].iter().enumerate() {
+            for (l, &v) in key[..b.len].iter().enumerate() {
                 by_row[*at as usize] = (v, b.a[k][l]);
                 *at += 1;
             }
@@ -380,5 +428,5 @@ fn seam_entries(
             }
         }
     }
-    merged
+    Ok(merged)
 }

@@ -27,7 +27,7 @@
 
 use rayon::prelude::*;
 
-use super::assemble::{assemble, Weights};
+use super::assemble::{assemble, SeamBlocks, Weights};
 use super::grid::TexelGrid;
 use super::multigrid::{self, Node};
 use super::quadrature::{seam_derivative_points, seam_difference_points, QuadPoint, Segment};
@@ -204,13 +204,13 @@ pub fn erase(
         "seam terms and distances"
     );
     // `start`: the texel values an iterative solve starts from.
-    let solve = |band: &[bool], start: &[f32]| {
+    let solve = |band: &[bool], start: &[f32], seam: &SeamBlocks| {
         solve_band(
             grid,
             input,
             channels,
             classes,
-            &terms,
+            seam,
             band,
             &dist,
             change,
@@ -219,8 +219,9 @@ pub fn erase(
             start,
         )
     };
+    let seam_blocks = || SeamBlocks::new(&terms.points, &movable, input, channels);
     if opts.full {
-        let x = solve(&movable, input)?;
+        let x = solve(&movable, input, &seam_blocks())?;
         let stats = EraseStats {
             unknowns: x.1,
             band_radius: None,
@@ -232,27 +233,13 @@ pub fn erase(
     let ratio = decay_per_texel(change / w.grad);
     let decay_len = -1.0 / ratio.ln();
     let tol = opts.band_tolerance_levels / opts.levels;
-    // The first band: every texel within reach of a seam jump, i.e. as far
-    // as the decay needs to bring that jump below the tolerance, and at least
-    // `MIN_BAND` decay lengths (changes driven by the C1 term or by distant
-    // jumps are caught by the check after the solve).
-    let mut reach = crate::heap::filled(grid.len(), -1i32);
-    for &(t, jump) in &jumps {
-        if 0.5 * jump > tol {
-            // Each side of the seam takes about half the jump.
-            let need = ((0.5 * jump / tol).ln() * decay_len).ceil() as i32 + 1;
-            reach[t as usize] = reach[t as usize].max(need);
-        }
-    }
-    spread_down(&mut reach, grid.width, grid.height);
-    let base = (MIN_BAND * decay_len).ceil() as u32;
-    let mut band: Vec<bool> = dist
-        .par_iter()
-        .zip(&reach)
-        .zip(&movable)
-        .map(|((&d, &r), &m)| m && (d <= base || r >= 0))
-        .collect();
-    drop((reach, jumps));
+    // The first band is found on one thread, the seam blocks summed on the
+    // other: neither needs the other.
+    let (mut band, seam) = rayon::join(
+        || first_band(grid, &jumps, &dist, &movable, decay_len, tol),
+        seam_blocks,
+    );
+    drop(jumps);
     tracing::debug!(
         rss_mb = crate::heap::resident_mb(),
         elapsed_ms = t0.elapsed().as_millis() as u64,
@@ -263,7 +250,7 @@ pub fn erase(
     // right near the seams.
     let mut last: Option<Vec<f32>> = None;
     loop {
-        let (out, unknowns) = solve(&band, last.as_deref().unwrap_or(input))?;
+        let (out, unknowns) = solve(&band, last.as_deref().unwrap_or(input), &seam)?;
         solves += 1;
         let growth = grow_band(grid, &band, &movable, &out, input, channels, ratio, tol);
         tracing::debug!(
@@ -290,6 +277,42 @@ pub fn erase(
         band = wider;
         last = Some(out);
     }
+}
+
+/// The first band: every movable texel within reach of a seam jump, i.e. as
+/// far as the decay needs to bring that jump below the tolerance, and at
+/// least [`MIN_BAND`] decay lengths (changes driven by the C1 term or by
+/// distant jumps are caught by the check after the solve).
+fn first_band(
+    grid: &TexelGrid,
+    jumps: &[(u32, f64)],
+    dist: &[u32],
+    movable: &[bool],
+    decay_len: f64,
+    tol: f64,
+) -> Vec<bool> {
+    let mut reach = crate::heap::filled(grid.len(), -1i32);
+    // The taps of one point share its jump: one logarithm for them all.
+    let mut last = (f64::NAN, 0);
+    for &(t, jump) in jumps {
+        if 0.5 * jump > tol {
+            if jump != last.0 {
+                // Each side of the seam takes about half the jump.
+                last = (
+                    jump,
+                    ((0.5 * jump / tol).ln() * decay_len).ceil() as i32 + 1,
+                );
+            }
+            reach[t as usize] = reach[t as usize].max(last.1);
+        }
+    }
+    spread_down(&mut reach, grid.width, grid.height);
+    let base = (MIN_BAND * decay_len).ceil() as u32;
+    dist.par_iter()
+        .zip(&reach)
+        .zip(movable)
+        .map(|((&d, &r), &m)| m && (d <= base || r >= 0))
+        .collect()
 }
 
 /// The narrowest band, in decay lengths.
@@ -451,7 +474,7 @@ fn solve_band(
     input: &[f32],
     channels: usize,
     classes: &TexelClasses,
-    terms: &SeamTerms,
+    seam: &SeamBlocks,
     band: &[bool],
     dist: &[u32],
     change: f64,
@@ -475,18 +498,7 @@ fn solve_band(
     // The seam entries are summed on one thread; the multigrid's node
     // placement, which needs only the band, takes the other.
     let (assembled, placed) = rayon::join(
-        || {
-            assemble(
-                grid,
-                input,
-                channels,
-                classes,
-                &terms.points,
-                &unknown,
-                n,
-                &weights,
-            )
-        },
+        || assemble(grid, input, channels, classes, seam, &unknown, n, &weights),
         || (!direct).then(|| place_nodes(grid.width, &unknown, n, dist, start, ch)),
     );
     let (a, b) = assembled?;
