@@ -126,22 +126,22 @@ impl Hierarchy {
             sweeps.push(sweep);
             let tl = std::time::Instant::now();
             let next_exact = next.iter().filter(|n| **n == Node::Exact).count();
-            let (rows, closed) = if is_coarsest(next.len(), next_exact) {
+            let (rows, closed, mb) = if is_coarsest(next.len(), next_exact) {
                 // To be factored: in compressed rows.
                 let (ac, _) = match coarse.last() {
                     Some(a) => a.galerkin_with(&transfer, true, tensor.as_ref())?,
                     None => fine.galerkin_with(&transfer, true, None)?,
                 };
-                let n = ac.n;
+                let counts = (ac.n, 0, ac.col.len() * 12 / (1 << 20));
                 last = Some(ac);
-                (n, 0)
+                counts
             } else {
                 let (ac, next_tensor) = match coarse.last() {
                     Some(a) => a.galerkin_closed(&transfer, tensor.as_ref())?,
                     None => fine.galerkin_closed(&transfer, None)?,
                 };
                 tensor = next_tensor;
-                let counts = (ac.n(), ac.closed_rows());
+                let counts = (ac.n(), ac.closed_rows(), ac.bytes() / (1 << 20));
                 coarse.push(ac);
                 counts
             };
@@ -152,6 +152,7 @@ impl Hierarchy {
                 galerkin_ms = tl.elapsed().as_millis() as u64,
                 rows,
                 closed,
+                mb,
                 "multigrid level"
             );
             transfers.push(transfer);
