@@ -22,9 +22,10 @@
 //!
 //! Coarse operators are Galerkin products PᵀAP, so every level describes the
 //! same energy. Levels above the coarsest keep most rows in closed form
-//! ([`CoarseMatrix`]); the coarsest, to be factored, is in compressed rows. A V-cycle whose post-smoother reverses its pre-smoother is a
-//! symmetric preconditioner, and CG turns it into the solution of the fine
-//! system to the tolerance below: the hierarchy decides only how fast.
+//! ([`CoarseMatrix`]); the coarsest, to be factored, is in compressed rows.
+//! A V-cycle whose post-smoother reverses its pre-smoother is a symmetric
+//! preconditioner, and CG turns it into the solution of the fine system to
+//! the tolerance below: the hierarchy decides only how fast.
 
 use rayon::prelude::*;
 
@@ -132,7 +133,8 @@ impl Hierarchy {
                     Some(a) => a.galerkin_with(&transfer, true, tensor.as_ref())?,
                     None => fine.galerkin_with(&transfer, true, None)?,
                 };
-                let counts = (ac.n, 0, ac.col.len() * 12 / (1 << 20));
+                let entry = std::mem::size_of::<u32>() + std::mem::size_of::<f64>();
+                let counts = (ac.n, 0, ac.col.len() * entry / (1 << 20));
                 last = Some(ac);
                 counts
             } else {
