@@ -13,7 +13,7 @@
 
 use rayon::prelude::*;
 
-use super::sparse::{Rows, SymCsr, TensorRows};
+use super::sparse::{Rows, TensorRows};
 use super::stencil::NONE;
 use super::system::SolveError;
 
@@ -69,12 +69,6 @@ impl CoarseMatrix {
             scale: [s0, s1, s2],
             shift: [h0, h1, h2],
         }
-    }
-
-    /// Every row stored.
-    pub fn from_csr(a: SymCsr) -> Result<Self, SolveError> {
-        let rows = vec![Closed::STORED; a.n];
-        Self::from_parts(Form::default(), rows, a.ptr, a.col, a.val)
     }
 
     /// From each row's closed form or [`Closed::STORED`], and every row's

@@ -97,13 +97,16 @@ impl Hierarchy {
         let mut sweeps = Vec::new();
         // Which rows of the last level have the closed form (see `TensorRows`).
         let mut tensor = None;
-        loop {
-            let exact_rows: Vec<u32> = nodes
+        let exact_of = |nodes: &[Node]| -> Vec<u32> {
+            nodes
                 .iter()
                 .enumerate()
                 .filter(|(_, n)| **n == Node::Exact)
                 .map(|(i, _)| i as u32)
-                .collect();
+                .collect()
+        };
+        let mut exact_rows = exact_of(&nodes);
+        loop {
             let exact_count = exact_rows.len();
             exact.push(exact_rows);
             if is_coarsest(nodes.len(), exact_count) {
@@ -126,8 +129,8 @@ impl Hierarchy {
             );
             sweeps.push(sweep);
             let tl = std::time::Instant::now();
-            let next_exact = next.iter().filter(|n| **n == Node::Exact).count();
-            let (rows, closed, mb) = if is_coarsest(next.len(), next_exact) {
+            exact_rows = exact_of(&next);
+            let (rows, closed, mb) = if is_coarsest(next.len(), exact_rows.len()) {
                 // To be factored: in compressed rows.
                 let (ac, _) = match coarse.last() {
                     Some(a) => a.galerkin_with(&transfer, true, tensor.as_ref())?,

@@ -268,14 +268,10 @@ pub trait Rows: Sync {
         tensor: Option<&TensorRows>,
     ) -> Result<(CoarseMatrix, Option<TensorRows>), SolveError> {
         let (parts, coarse_tensor) = self.galerkin_parts(p, true, tensor, true);
-        let Some(t) = &coarse_tensor else {
-            let (ptr, col, val) = join_stored(parts.into_iter().map(|g| (g.lens, g.col, g.val)));
-            return Ok((
-                CoarseMatrix::from_csr(SymCsr::from_parts(ptr, col, val)?)?,
-                None,
-            ));
-        };
-        let form = CoarseMatrix::form(t);
+        let form = coarse_tensor
+            .as_ref()
+            .map(CoarseMatrix::form)
+            .unwrap_or_default();
         let mut closed = Vec::new();
         let mut stored = Vec::with_capacity(parts.len());
         for g in parts {
@@ -288,6 +284,10 @@ pub trait Rows: Sync {
         let mut rows = closed.next().unwrap_or_default();
         for c in closed {
             rows.par_extend(c.into_par_iter());
+        }
+        // Without tensor rows every row is stored.
+        if rows.is_empty() {
+            rows = vec![Closed::STORED; p.coarse];
         }
         Ok((
             CoarseMatrix::from_parts(form, rows, ptr, col, val)?,
