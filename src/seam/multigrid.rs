@@ -86,8 +86,13 @@ pub struct Hierarchy {
 impl Hierarchy {
     /// Builds the levels below `fine`, whose unknowns sit at `nodes`, and
     /// returns the coarsest level's operator, to be factored, beside them.
-    /// The exact block is not factored yet (see [`Self::factor_exact_block`]).
-    fn new(fine: StencilMatrix, nodes: Vec<Node>) -> Result<(Self, SymCsr), SolveError> {
+    /// `exact_rows` lists the exact nodes among `nodes` ([`exact_rows`]).
+    /// The exact block's factor is left to the caller ([`solve`]).
+    fn new(
+        fine: StencilMatrix,
+        nodes: Vec<Node>,
+        exact_rows: Vec<u32>,
+    ) -> Result<(Self, SymCsr), SolveError> {
         let t = std::time::Instant::now();
         let mut coarse: Vec<CoarseMatrix> = Vec::new();
         let mut last: Option<SymCsr> = None;
@@ -97,15 +102,7 @@ impl Hierarchy {
         let mut sweeps = Vec::new();
         // Which rows of the last level have the closed form (see `TensorRows`).
         let mut tensor = None;
-        let exact_of = |nodes: &[Node]| -> Vec<u32> {
-            nodes
-                .iter()
-                .enumerate()
-                .filter(|(_, n)| **n == Node::Exact)
-                .map(|(i, _)| i as u32)
-                .collect()
-        };
-        let mut exact_rows = exact_of(&nodes);
+        let mut exact_rows = exact_rows;
         loop {
             let exact_count = exact_rows.len();
             exact.push(exact_rows);
@@ -129,7 +126,7 @@ impl Hierarchy {
             );
             sweeps.push(sweep);
             let tl = std::time::Instant::now();
-            exact_rows = exact_of(&next);
+            exact_rows = self::exact_rows(&next);
             let (rows, closed, mb) = if is_coarsest(next.len(), exact_rows.len()) {
                 // To be factored: in compressed rows.
                 let (ac, _) = match coarse.last() {
@@ -192,21 +189,6 @@ impl Hierarchy {
             sweeps,
         };
         Ok((h, last))
-    }
-
-    /// Factors the exact nodes' block (the same on every level).
-    fn factor_exact_block(&mut self) -> Result<(), SolveError> {
-        let tb = std::time::Instant::now();
-        self.exact_block = match self.exact.first() {
-            Some(rows) if !rows.is_empty() => BlockPart::split(&self.fine.submatrix(rows)?)?,
-            _ => Vec::new(),
-        };
-        tracing::debug!(
-            rss_mb = crate::heap::resident_mb(),
-            elapsed_ms = tb.elapsed().as_millis() as u64,
-            "exact block factored"
-        );
-        Ok(())
     }
 
     /// z += the exact correction on level `l`'s exact nodes, the rest held.
@@ -323,6 +305,16 @@ impl Hierarchy {
             })
             .collect()
     }
+}
+
+/// The indices of the exact nodes among `nodes`.
+fn exact_rows(nodes: &[Node]) -> Vec<u32> {
+    nodes
+        .iter()
+        .enumerate()
+        .filter(|(_, n)| **n == Node::Exact)
+        .map(|(i, _)| i as u32)
+        .collect()
 }
 
 /// Whether a level of `n` unknowns, `exact` of them exact, is the coarsest.
@@ -550,12 +542,33 @@ fn solve_n<const C: usize>(
     x0: Vec<f64>,
 ) -> Result<(Vec<f64>, usize), SolveError> {
     let ch = C;
-    let (mut m, last) = Hierarchy::new(fine, nodes)?;
+    // The exact block needs only the fine matrix: it is factored beside the
+    // levels, whose serial stretches leave a core idle. (Without a level
+    // below the fine one there is no smoother to use it.)
+    let exact = exact_rows(&nodes);
+    let block = match exact.is_empty() || is_coarsest(nodes.len(), exact.len()) {
+        true => None,
+        false => Some(fine.submatrix(&exact)?),
+    };
+    let (levels, block) = rayon::join(
+        || Hierarchy::new(fine, nodes, exact),
+        || {
+            let tb = std::time::Instant::now();
+            let parts = block.map_or(Ok(Vec::new()), |b| BlockPart::split(&b));
+            tracing::debug!(
+                rss_mb = crate::heap::resident_mb(),
+                elapsed_ms = tb.elapsed().as_millis() as u64,
+                "exact block factored"
+            );
+            parts
+        },
+    );
+    let (mut m, last) = levels?;
+    m.exact_block = block?;
     let t = std::time::Instant::now();
     // The coarsest factorisation (its ordering and its numeric phase) runs on
-    // one thread, and then makes CG's search direction; the other factors the
-    // exact block, which the V-cycle's way down needs, and takes CG as far as
-    // the coarsest solve of its first cycle.
+    // one thread, and then makes CG's search direction; the other takes CG as
+    // far as the coarsest solve of its first cycle.
     let n = m.fine.n();
     let ((coarsest, mut p), start) = rayon::join(
         || {
@@ -563,7 +576,6 @@ fn solve_n<const C: usize>(
             (f, crate::heap::filled(n * ch, 0.0))
         },
         || {
-            m.factor_exact_block()?;
             let bb = dots::<C>(&b, &b);
             let mut r = b;
             m.fine.residual_in_place(&mut r, &x0, ch);
@@ -801,7 +813,7 @@ mod tests {
         a.apply(&x_true, &mut b, 3);
         let fine = StencilMatrix::from_csr(&a, -1.0).unwrap();
         assert!(fine.stored_rows() > 0 && fine.stored_rows() < 20);
-        let (m, _) = Hierarchy::new(fine, nodes.clone()).unwrap();
+        let (m, _) = Hierarchy::new(fine, nodes.clone(), exact_rows(&nodes)).unwrap();
         assert!(m.transfers.len() >= 2, "{} levels", m.transfers.len() + 1);
         let fine = StencilMatrix::from_csr(&a, -1.0).unwrap();
         let (x, _) = solve(fine, nodes, b, 3, vec![0.0; n * 3]).unwrap();
