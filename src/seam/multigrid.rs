@@ -79,6 +79,9 @@ pub struct Hierarchy {
     /// their block, which is the same on every level (P is the identity there).
     exact: Vec<Vec<u32>>,
     exact_block: Vec<BlockPart>,
+    /// Per level above the coarsest: the exact rows' entries in lattice
+    /// columns, all the pre-smoothing's exact correction reads.
+    exact_lattice: Vec<LatticeEntries>,
     /// How Gauss–Seidel sweeps each level above the coarsest.
     sweeps: Vec<Sweep>,
 }
@@ -100,6 +103,7 @@ impl Hierarchy {
         let mut nodes = nodes;
         let mut exact = Vec::new();
         let mut sweeps = Vec::new();
+        let mut exact_lattice = Vec::new();
         // Which rows of the last level have the closed form (see `TensorRows`).
         let mut tensor = None;
         let mut exact_rows = exact_rows;
@@ -117,14 +121,20 @@ impl Hierarchy {
                 },
                 || {
                     let tl = std::time::Instant::now();
+                    let rows = exact.last().expect("this level's exact rows");
                     let sweep = match coarse.last() {
-                        Some(a) => Sweep::new(a, &nodes),
-                        None => Sweep::new(&fine, &nodes),
+                        Some(a) => (Sweep::new(a, &nodes), LatticeEntries::new(a, rows, &nodes)),
+                        None => (
+                            Sweep::new(&fine, &nodes),
+                            LatticeEntries::new(&fine, rows, &nodes),
+                        ),
                     };
                     (sweep, tl.elapsed().as_millis() as u64)
                 },
             );
+            let (sweep, entries) = sweep;
             sweeps.push(sweep);
+            exact_lattice.push(entries);
             let tl = std::time::Instant::now();
             exact_rows = self::exact_rows(&next);
             let (rows, closed, mb) = if is_coarsest(next.len(), exact_rows.len()) {
@@ -186,6 +196,7 @@ impl Hierarchy {
             transfers,
             exact,
             exact_block: Vec::new(),
+            exact_lattice,
             sweeps,
         };
         Ok((h, last))
@@ -200,7 +211,19 @@ impl Hierarchy {
     /// a residual orthogonal to them, zero on exact rows, for the
     /// post-smoothing one to find (Fox: the same CG steps to nine digits; the
     /// coarsest level's diagonal shift is all that tells them apart).
-    fn exact_correction<A: Rows>(&self, a: &A, l: usize, r: &[f64], z: &mut [f64], ch: usize) {
+    ///
+    /// `fresh`: z is still zero on the exact rows (the way down), so their
+    /// residual needs only their entries in lattice columns (the same bits:
+    /// a zero term changes no partial sum, and one is never −0).
+    fn exact_correction<A: Rows>(
+        &self,
+        a: &A,
+        l: usize,
+        r: &[f64],
+        z: &mut [f64],
+        ch: usize,
+        fresh: bool,
+    ) {
         let Some(rows) = self.exact.get(l) else {
             return;
         };
@@ -208,7 +231,10 @@ impl Hierarchy {
             return;
         }
         let mut s = vec![0.0; rows.len() * ch];
-        a.residual_rows(rows, r, z, &mut s, ch);
+        match fresh {
+            true => self.exact_lattice[l].residual(rows, r, z, &mut s, ch),
+            false => a.residual_rows(rows, r, z, &mut s, ch),
+        }
         assert!(z.len() >= a.n() * ch);
         let shared = Shared(z.as_mut_ptr());
         self.exact_block.par_iter().for_each(|p| {
@@ -287,12 +313,12 @@ impl Hierarchy {
         ch: usize,
     ) {
         self.sweeps[l].run(a, r, z, ch, true);
-        self.exact_correction(a, l, r, z, ch);
+        self.exact_correction(a, l, r, z, ch, true);
         self.transfers[l].restrict_residual(a, r, z, coarse_rhs, ch);
     }
 
     fn postsmooth<A: Rows>(&self, a: &A, l: usize, r: &[f64], z: &mut [f64], ch: usize) {
-        self.exact_correction(a, l, r, z, ch);
+        self.exact_correction(a, l, r, z, ch, false);
         self.sweeps[l].run(a, r, z, ch, false);
     }
 
@@ -388,6 +414,58 @@ impl BlockPart {
             .collect()
     }
 }
+
+/// Some rows' entries in some columns, in compressed rows.
+struct LatticeEntries {
+    ptr: Vec<usize>,
+    col: Vec<u32>,
+    val: Vec<f64>,
+}
+
+impl LatticeEntries {
+    /// The entries of `rows` of `a` in the columns of lattice nodes, in column order.
+    fn new<A: Rows>(a: &A, rows: &[u32], nodes: &[Node]) -> Self {
+        let mut e = LatticeEntries {
+            ptr: Vec::with_capacity(rows.len() + 1),
+            col: Vec::new(),
+            val: Vec::new(),
+        };
+        e.ptr.push(0);
+        for &i in rows {
+            a.for_each(i as usize, |j, v| {
+                if nodes[j] != Node::Exact {
+                    e.col.push(j as u32);
+                    e.val.push(v);
+                }
+            });
+            e.ptr.push(e.col.len());
+        }
+        e
+    }
+
+    /// out = (r − A z) on `rows` (the rows these entries were taken from),
+    /// where z is zero outside the entries' columns.
+    fn residual(&self, rows: &[u32], r: &[f64], z: &[f64], out: &mut [f64], ch: usize) {
+        out.par_chunks_mut(ROWS_PER_TASK * ch)
+            .enumerate()
+            .for_each(|(b, os)| {
+                for (m, o) in os.chunks_exact_mut(ch).enumerate() {
+                    let k = b * ROWS_PER_TASK + m;
+                    let i = rows[k] as usize;
+                    o.copy_from_slice(&r[i * ch..(i + 1) * ch]);
+                    for e in self.ptr[k]..self.ptr[k + 1] {
+                        let (j, v) = (self.col[e] as usize, self.val[e]);
+                        for c in 0..ch {
+                            o[c] -= v * z[j * ch + c];
+                        }
+                    }
+                }
+            });
+    }
+}
+
+/// Rows per parallel task of [`LatticeEntries::residual`].
+const ROWS_PER_TASK: usize = 4096;
 
 /// Lattice rows per stripe of this many lattice rows.
 const STRIPE: u32 = 8;
