@@ -610,6 +610,7 @@ struct Start {
     bb: [f64; 4],
     r: Vec<f64>,
     zq: Vec<f64>,
+    p: Vec<f64>,
     ws: Vec<Work>,
 }
 
@@ -645,14 +646,11 @@ fn solve_n<const C: usize>(
     m.exact_block = block?;
     let t = std::time::Instant::now();
     // The coarsest factorisation (its ordering and its numeric phase) runs on
-    // one thread, and then makes CG's search direction; the other takes CG as
-    // far as the coarsest solve of its first cycle.
+    // one thread; the other takes CG as far as the coarsest solve of its
+    // first cycle, and makes CG's search direction.
     let n = m.fine.n();
-    let ((coarsest, mut p), start) = rayon::join(
-        || {
-            let f = Cholesky::new(&last.to_faer());
-            (f, crate::heap::filled(n * ch, 0.0))
-        },
+    let (coarsest, start) = rayon::join(
+        || Cholesky::new(&last.to_faer()),
         || {
             let bb = dots::<C>(&b, &b);
             let mut r = b;
@@ -662,7 +660,8 @@ fn solve_n<const C: usize>(
             // is spent on updating x and r before the next V-cycle writes z.
             let mut zq = crate::heap::filled(n * ch, 0.0);
             m.descend(0, &r, &mut zq, &mut ws, ch);
-            Ok::<_, SolveError>(Start { bb, r, zq, ws })
+            let p = crate::heap::filled(n * ch, 0.0);
+            Ok::<_, SolveError>(Start { bb, r, zq, p, ws })
         },
     );
     drop(last);
@@ -676,6 +675,7 @@ fn solve_n<const C: usize>(
         bb,
         mut r,
         mut zq,
+        mut p,
         mut ws,
     } = start;
     let m = &m;
