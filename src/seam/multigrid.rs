@@ -9,7 +9,8 @@
 //! unknowns of their own ("exact" nodes, identity in the prolongation), and
 //! coarsens only the rest, bilinearly by two per level. Coarsening stops
 //! once the lattice part is no larger than the exact part, and that level,
-//! the exact nodes plus a lattice of their size, is factored directly.
+//! the exact nodes plus a lattice of their size, is factored directly (by
+//! connected piece: the bands of charts apart from each other do not touch).
 //!
 //! The smoother follows the same split. Gauss–Seidel relaxes the lattice
 //! rows; the exact rows, whose stiff ties a pointwise sweep cannot follow, are
@@ -236,29 +237,15 @@ impl Hierarchy {
             false => a.residual_rows(rows, r, z, &mut s, ch),
         }
         assert!(z.len() >= a.n() * ch);
-        let shared = Shared(z.as_mut_ptr());
-        self.exact_block.par_iter().for_each(|p| {
-            let mut b = Vec::with_capacity(p.rows.len() * ch);
-            for &k in &p.rows {
-                b.extend_from_slice(&s[k as usize * ch..(k as usize + 1) * ch]);
-            }
-            let d = p.factor.solve_interleaved(&b, ch);
-            for (m, &k) in p.rows.iter().enumerate() {
-                let i = rows[k as usize] as usize;
-                for c in 0..ch {
-                    // SAFETY: in bounds (the level's exact rows are below its
-                    // n, `Hierarchy::new`; z's length asserted above), and
-                    // each exact row belongs to one part (`BlockPart::split`),
-                    // so no two tasks touch the same entry; `z` is
-                    // exclusively borrowed.
-                    unsafe { *shared.get().add(i * ch + c) += d[m * ch + c] };
-                }
-            }
+        BlockPart::solve(&self.exact_block, &s, ch, |k, d| {
+            let i = rows[k] as usize;
+            let zi = z[i * ch..(i + 1) * ch].iter_mut();
+            zi.zip(d).for_each(|(zc, dc)| *zc += dc);
         });
     }
 
     /// z = M⁻¹ r, one V-cycle; `z` must be zero on entry.
-    fn vcycle(&self, coarsest: &Cholesky, r: &[f64], z: &mut [f64], ws: &mut [Work], ch: usize) {
+    fn vcycle(&self, coarsest: &[BlockPart], r: &[f64], z: &mut [f64], ws: &mut [Work], ch: usize) {
         self.descend(0, r, z, ws, ch);
         self.ascend(coarsest, 0, r, z, ws, ch);
     }
@@ -284,7 +271,7 @@ impl Hierarchy {
     /// (the pre-smoothing's steps in reverse, so the cycle stays symmetric).
     fn ascend(
         &self,
-        coarsest: &Cholesky,
+        coarsest: &[BlockPart],
         l: usize,
         r: &[f64],
         z: &mut [f64],
@@ -292,7 +279,9 @@ impl Hierarchy {
         ch: usize,
     ) {
         let Some((w, rest)) = ws.split_first_mut() else {
-            z.copy_from_slice(&coarsest.solve_interleaved(r, ch));
+            BlockPart::solve(coarsest, r, ch, |k, d| {
+                z[k * ch..(k + 1) * ch].copy_from_slice(d);
+            });
             return;
         };
         self.ascend(coarsest, l + 1, &w.coarse_rhs, &mut w.coarse_z, rest, ch);
@@ -354,13 +343,14 @@ fn is_coarsest(n: usize, exact: usize) -> bool {
     n - exact <= COARSEST_LATTICE.max(exact)
 }
 
-/// The exact block is split into this many parts, whole connected pieces
-/// (seam strips) each, solved in parallel. A fixed count, so the bits do not
+/// The exact block and the coarsest level are split into at most this many
+/// parts, whole connected pieces (seam strips; the bands of separate charts)
+/// each, factored and solved in parallel. A fixed count, so the bits do not
 /// depend on the number of threads.
 const BLOCK_PARTS: usize = 4;
 
-/// One part of the exact block: its rows (indices into a level's exact list)
-/// and their factor.
+/// One part of a split matrix: its rows (for the exact block, indices into a
+/// level's exact list) and their factor.
 struct BlockPart {
     rows: Vec<u32>,
     factor: Cholesky,
@@ -412,6 +402,25 @@ impl BlockPart {
                 Ok(BlockPart { rows, factor })
             })
             .collect()
+    }
+
+    /// Solves the split block for `s` (`ch` channels, interleaved), the
+    /// parts in parallel, and hands each row's solution to `put` (row, values).
+    /// `put` runs under a lock: a handful of values per row, against a solve's
+    /// many.
+    fn solve(parts: &[BlockPart], s: &[f64], ch: usize, put: impl FnMut(usize, &[f64]) + Send) {
+        let put = std::sync::Mutex::new(put);
+        parts.par_iter().for_each(|p| {
+            let mut b = Vec::with_capacity(p.rows.len() * ch);
+            for &k in &p.rows {
+                b.extend_from_slice(&s[k as usize * ch..(k as usize + 1) * ch]);
+            }
+            let d = p.factor.solve_interleaved(&b, ch);
+            let mut put = put.lock().unwrap_or_else(|e| e.into_inner());
+            for (m, &k) in p.rows.iter().enumerate() {
+                put(k as usize, &d[m * ch..(m + 1) * ch]);
+            }
+        });
     }
 }
 
@@ -647,10 +656,12 @@ fn solve_n<const C: usize>(
     let t = std::time::Instant::now();
     // The coarsest factorisation (its ordering and its numeric phase) runs on
     // one thread; the other takes CG as far as the coarsest solve of its
-    // first cycle, and makes CG's search direction.
+    // first cycle, and makes CG's search direction. Split by connected piece,
+    // the factorisation takes the second thread too once that is done (Fox:
+    // four parts, 31 522 + 8 664 + 2 687 + 25 745 unknowns).
     let n = m.fine.n();
     let (coarsest, start) = rayon::join(
-        || Cholesky::new(&last.to_faer()),
+        || BlockPart::split(&last),
         || {
             let bb = dots::<C>(&b, &b);
             let mut r = b;
