@@ -214,8 +214,9 @@ impl Hierarchy {
     /// coarsest level's diagonal shift is all that tells them apart).
     ///
     /// `fresh`: z is still zero on the exact rows (the way down), so their
-    /// residual needs only their entries in lattice columns (the same bits:
-    /// a zero term changes no partial sum, and one is never −0).
+    /// residual needs only their entries in lattice columns (the same values:
+    /// subtracting a zero product changes no partial sum, at most the sign
+    /// of a zero one).
     fn exact_correction<A: Rows>(
         &self,
         a: &A,
@@ -552,7 +553,7 @@ impl Sweep {
 }
 
 /// A pointer that may cross threads, for tasks that write disjoint entries
-/// (see [`Sweep::run`] and [`Hierarchy::exact_correction`]).
+/// (see [`Sweep::run`]).
 #[derive(Clone, Copy)]
 struct Shared(*mut f64);
 unsafe impl Send for Shared {}
