@@ -632,8 +632,10 @@ fn solve_n<const C: usize>(
 ) -> Result<(Vec<f64>, usize), SolveError> {
     let ch = C;
     // The exact block needs only the fine matrix: it is factored beside the
-    // levels, whose serial stretches leave a core idle. (Without a level
-    // below the fine one there is no smoother to use it.)
+    // levels' construction (which takes about as much longer as the join
+    // below gets shorter), so that the first cycle's way down, beside the
+    // coarsest factorisation, does not wait for it. (Without a level below
+    // the fine one there is no smoother to use it.)
     let exact = exact_rows(&nodes);
     let block = match exact.is_empty() || is_coarsest(nodes.len(), exact.len()) {
         true => None,
