@@ -215,10 +215,7 @@ fn erase_level(
             tex.channels,
             &seams,
             &classes,
-            &EraseOptions {
-                levels: f64::from(tex.encoding.max_value()),
-                ..EraseOptions::new(opts.mode)
-            },
+            &EraseOptions::new(opts.mode),
         )
         .map_err(|source| PipelineError::Erase {
             name: b.name.clone(),
