@@ -54,7 +54,7 @@ pub fn assemble(
     let ch = channels;
     let mut rhs = crate::heap::filled(n * ch, 0.0f64);
     let ts = std::time::Instant::now();
-    let seam_rows = seam_entries(seam, unknown, ch, n, &mut rhs)?;
+    let seam_rows = seam_entries(seam, unknown, ch, &mut rhs)?;
     tracing::debug!(
         elapsed_ms = ts.elapsed().as_millis() as u64,
         points = seam.points,
@@ -283,10 +283,15 @@ fn lattice_rows<const C: usize>(
 /// The seam terms summed per cell pair: what the system takes from them that
 /// does not depend on the band. Every texel a seam term reads lies at a seam,
 /// which every band holds wherever it may move (see `erase`), so which taps
-/// are unknowns is known before the band is.
+/// are unknowns is known before the band is. So is the entries' order: the
+/// band numbers its unknowns in texel order, so entries sorted by texel stay
+/// sorted by unknown, whatever the band.
 pub struct SeamBlocks {
-    /// Keyed by texel; numbered by the band in [`seam_entries`].
-    blocks: Vec<Block>,
+    /// The texels the blocks couple, increasing.
+    texels: Vec<u32>,
+    /// The blocks' entries as (row, column, value), rows and columns indices
+    /// into `texels`, sorted by both, equal ones summed in point order.
+    entries: Vec<(u32, u32, f64)>,
     /// Right-hand side terms of the taps held at their input value, per
     /// texel, in the order of the points (and summed in that order).
     held: Vec<(u32, [f64; 4])>,
@@ -295,7 +300,8 @@ pub struct SeamBlocks {
 
 impl SeamBlocks {
     /// Sums the points' outer products into one dense block per set of
-    /// movable texels, the held taps into right-hand side terms.
+    /// movable texels, the held taps into right-hand side terms, and sorts
+    /// the blocks' entries.
     pub fn new(points: &[QuadPoint], movable: &[bool], input: &[f32], ch: usize) -> Self {
         let mut blocks: Vec<Block> = Vec::new();
         let mut held_terms = Vec::new();
@@ -354,22 +360,83 @@ impl SeamBlocks {
                 }
             }
         }
+        drop(index);
+        let (texels, entries) = sorted_entries(&blocks);
         SeamBlocks {
-            blocks,
+            texels,
+            entries,
             held: held_terms,
             points: points.len(),
         }
     }
 }
 
+/// The blocks' texels (increasing) and their entries over those texels'
+/// indices, sorted by row and column with duplicates summed.
+fn sorted_entries(blocks: &[Block]) -> (Vec<u32>, Vec<(u32, u32, f64)>) {
+    let mut texels: Vec<u32> = blocks
+        .iter()
+        .flat_map(|b| b.texels[..b.len].iter().copied())
+        .collect();
+    texels.sort_unstable();
+    texels.dedup();
+    let index = |t: u32| texels.binary_search(&t).expect("a block's texel") as u32;
+    let keys: Vec<[u32; 8]> = blocks
+        .iter()
+        .map(|b| {
+            let mut key = [NONE; 8];
+            for (k, &t) in b.texels[..b.len].iter().enumerate() {
+                key[k] = index(t);
+            }
+            key
+        })
+        .collect();
+    // A counting sort by row, stable (each short row is then sorted by
+    // column, stably), so equal entries are summed in the order the points
+    // came.
+    let n = texels.len();
+    let mut start = vec![0u32; n + 1];
+    for (key, b) in keys.iter().zip(blocks) {
+        for &u in &key[..b.len] {
+            start[u as usize + 1] += b.len as u32;
+        }
+    }
+    for i in 0..n {
+        start[i + 1] += start[i];
+    }
+    let mut by_row = vec![(0u32, 0.0f64); start[n] as usize];
+    let mut next = start.clone();
+    for (key, b) in keys.iter().zip(blocks) {
+        for (k, &u) in key[..b.len].iter().enumerate() {
+            let at = &mut next[u as usize];
+            for (l, &v) in key[..b.len].iter().enumerate() {
+                by_row[*at as usize] = (v, b.a[k][l]);
+                *at += 1;
+            }
+        }
+    }
+    drop((next, keys));
+    let mut merged: Vec<(u32, u32, f64)> = Vec::with_capacity(by_row.len() / 2);
+    for i in 0..n {
+        let row = &mut by_row[start[i] as usize..start[i + 1] as usize];
+        row.sort_by_key(|e| e.0);
+        for &(c, v) in row.iter() {
+            match merged.last_mut() {
+                Some(m) if m.0 == i as u32 && m.1 == c => m.2 += v,
+                _ => merged.push((i as u32, c, v)),
+            }
+        }
+    }
+    (texels, merged)
+}
+
 /// The seam blocks' entries as (row, column, value) over the band's unknowns
-/// (`unknown`: per texel), sorted by row and column with duplicates summed,
-/// and their held terms added to `rhs`.
+/// (`unknown`: per texel), sorted by row and column, and their held terms
+/// added to `rhs`.
 fn seam_entries(
     seam: &SeamBlocks,
     unknown: &[u32],
     ch: usize,
-    n: usize,
     rhs: &mut [f64],
 ) -> Result<Vec<(u32, u32, f64)>, SolveError> {
     let outside = |t: u32| SolveError::Assembly(format!("seam texel {t} lies outside the band"));
@@ -382,51 +449,16 @@ fn seam_entries(
             rhs[u as usize * ch + c] += b[c];
         }
     }
-    let mut blocks = Vec::with_capacity(seam.blocks.len());
-    for b in &seam.blocks {
-        let mut key = [NONE; 8];
-        for (k, &t) in b.texels[..b.len].iter().enumerate() {
-            key[k] = unknown[t as usize];
-            if key[k] == NONE {
-                return Err(outside(t));
-            }
-        }
-        blocks.push((key, b));
-    }
-    // A counting sort by row straight from the blocks, stable (each short
-    // row is then sorted by column, stably), so equal entries are summed in
-    // the order the points came.
-    let mut start = vec![0u32; n + 1];
-    for (key, b) in &blocks {
-        for &u in &key[..b.len] {
-            start[u as usize + 1] += b.len as u32;
+    let mut of = Vec::with_capacity(seam.texels.len());
+    for &t in &seam.texels {
+        match unknown[t as usize] {
+            NONE => return Err(outside(t)),
+            u => of.push(u),
         }
     }
-    for i in 0..n {
-        start[i + 1] += start[i];
-    }
-    let mut by_row = vec![(0u32, 0.0f64); start[n] as usize];
-    let mut next = start.clone();
-    for (key, b) in &blocks {
-        for (k, &u) in key[..b.len].iter().enumerate() {
-            let at = &mut next[u as usize];
-            for (l, &v) in key[..b.len].iter().enumerate() {
-                by_row[*at as usize] = (v, b.a[k][l]);
-                *at += 1;
-            }
-        }
-    }
-    drop((next, blocks));
-    let mut merged: Vec<(u32, u32, f64)> = Vec::with_capacity(by_row.len() / 2);
-    for i in 0..n {
-        let row = &mut by_row[start[i] as usize..start[i + 1] as usize];
-        row.sort_by_key(|e| e.0);
-        for &(c, v) in row.iter() {
-            match merged.last_mut() {
-                Some(m) if m.0 == i as u32 && m.1 == c => m.2 += v,
-                _ => merged.push((i as u32, c, v)),
-            }
-        }
-    }
-    Ok(merged)
+    Ok(seam
+        .entries
+        .par_iter()
+        .map(|&(r, c, v)| (of[r as usize], of[c as usize], v))
+        .collect())
 }
