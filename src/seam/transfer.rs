@@ -103,31 +103,41 @@ impl Transfer {
             h: fh,
             id: crate::heap::filled(fw as usize * fh as usize, NONE),
         };
-        let mut coarse_grid = Grid {
-            w: cw,
-            h: ch,
-            id: crate::heap::filled(cw as usize * ch as usize, NONE),
-        };
         for (i, n) in nodes.iter().enumerate() {
             if let Node::Lattice(x, y) = *n {
                 fine_grid.id[(y * fw + x) as usize] = i as u32;
             }
         }
         // A coarse lattice point is numbered when the lowest fine unknown
-        // that reaches it comes (NONE, above every index, marks an empty
-        // point): each run of fine unknowns lists the coarse unknowns it
-        // brings, in parallel, and the runs are joined in order. The same
-        // numbering as one pass in fine order that creates each coarse
-        // point on first reach.
-        let first_reach = |cx: u32, cy: u32, i: u32| {
-            let (x0, y0) = ((2 * cx).saturating_sub(1), (2 * cy).saturating_sub(1));
-            (y0..(2 * cy + 2).min(fh)).all(|fy| {
-                let row = &fine_grid.id[(fy * fw) as usize..((fy + 1) * fw) as usize];
-                row[x0 as usize..(2 * cx + 2).min(fw) as usize]
-                    .iter()
-                    .all(|&j| j >= i)
-            })
+        // that reaches it comes: the same numbering as one pass in fine
+        // order that creates each coarse point on first reach. So each
+        // point first gets that lowest unknown (NONE, above every index,
+        // where none reaches it); then each run of fine unknowns lists the
+        // coarse points it brings, in parallel, and the runs are joined in
+        // order. Every listed point is numbered below, the others stay
+        // NONE: the grid becomes the coarse index grid in place.
+        let mut coarse_grid = Grid {
+            w: cw,
+            h: ch,
+            id: crate::heap::filled(cw as usize * ch as usize, NONE),
         };
+        coarse_grid
+            .id
+            .par_chunks_mut(cw as usize)
+            .enumerate()
+            .for_each(|(cy, row)| {
+                let cy = cy as u32;
+                let ys = (2 * cy).saturating_sub(1)..(2 * cy + 2).min(fh);
+                for (cx, first) in (0..cw).zip(row.iter_mut()) {
+                    let xs = (2 * cx).saturating_sub(1) as usize..(2 * cx + 2).min(fw) as usize;
+                    for fy in ys.clone() {
+                        let at = (fy * fw) as usize;
+                        for &j in &fine_grid.id[at + xs.start..at + xs.end] {
+                            *first = (*first).min(j);
+                        }
+                    }
+                }
+            });
         let runs: Vec<Vec<[u32; 2]>> = nodes
             .par_chunks(COARSEN_RUN)
             .enumerate()
@@ -142,7 +152,7 @@ impl Transfer {
                             let (px, nx) = parents(x);
                             for &(cy, _) in &py[..ny] {
                                 for &(cx, _) in &px[..nx] {
-                                    if first_reach(cx, cy, i) {
+                                    if coarse_grid.at(cx, cy) == i {
                                         out.push([cx, cy]);
                                     }
                                 }
