@@ -259,7 +259,7 @@ pub fn erase(
         );
         let Some(wider) = growth.band.filter(|_| solves < 4) else {
             let reach = band
-                .iter()
+                .par_iter()
                 .zip(&dist)
                 .filter(|(b, _)| **b)
                 .map(|(_, &d)| d as usize)
@@ -344,50 +344,53 @@ fn grow_band(
 ) -> Growth {
     let (w, h) = (grid.width, grid.height);
     let decay_len = -1.0 / ratio.ln();
+    // The implied miss outside each edge texel (0 inside the band's interior).
+    let leak = |t: usize| {
+        if !band[t] {
+            return 0.0;
+        }
+        let (x, y) = (t % w, t / w);
+        let outside = [
+            (x > 0).then(|| t - 1),
+            (x + 1 < w).then(|| t + 1),
+            (y > 0).then(|| t - w),
+            (y + 1 < h).then(|| t + w),
+        ]
+        .into_iter()
+        .flatten()
+        .any(|s| movable[s] && !band[s]);
+        if !outside {
+            return 0.0;
+        }
+        let change = (0..ch)
+            .map(|c| f64::from((out[t * ch + c] - input[t * ch + c]).abs()))
+            .fold(0.0, f64::max);
+        change * ratio / (1.0 - ratio * ratio)
+    };
+    // Usually there is none: then no texel needs marking.
+    let leaks = (0..w * h)
+        .into_par_iter()
+        .with_min_len(GROW_CHUNK)
+        .filter(|&t| leak(t) > tol)
+        .count();
+    if leaks == 0 {
+        return Growth { band: None, leaks };
+    }
     // reach[t] ≥ 0: texel t lies within the needed widening of some leak.
     let mut reach = crate::heap::filled(w * h, -1i32);
-    let leaks: usize = reach
+    reach
         .par_chunks_mut(GROW_CHUNK)
         .enumerate()
-        .map(|(k, reach)| {
-            let mut leaks = 0;
+        .for_each(|(k, reach)| {
             for (i, r) in reach.iter_mut().enumerate() {
-                let t = k * GROW_CHUNK + i;
-                if !band[t] {
-                    continue;
-                }
-                let (x, y) = (t % w, t / w);
-                let outside = [
-                    (x > 0).then(|| t - 1),
-                    (x + 1 < w).then(|| t + 1),
-                    (y > 0).then(|| t - w),
-                    (y + 1 < h).then(|| t + w),
-                ]
-                .into_iter()
-                .flatten()
-                .any(|s| movable[s] && !band[s]);
-                if !outside {
-                    continue;
-                }
-                let change = (0..ch)
-                    .map(|c| f64::from((out[t * ch + c] - input[t * ch + c]).abs()))
-                    .fold(0.0, f64::max);
-                let leak = change * ratio / (1.0 - ratio * ratio);
-                if leak > tol {
-                    leaks += 1;
-                }
                 // Widening next to a leak raises its neighbours' change too:
                 // widen those close to the tolerance as well, with a margin.
+                let leak = leak(k * GROW_CHUNK + i);
                 if leak * GROWTH_MARGIN > tol {
                     *r = ((leak * GROWTH_MARGIN / tol).ln() * decay_len).ceil() as i32 + 1;
                 }
             }
-            leaks
-        })
-        .sum();
-    if leaks == 0 {
-        return Growth { band: None, leaks };
-    }
+        });
     spread_down(&mut reach, w, h);
     let band = band
         .par_iter()
