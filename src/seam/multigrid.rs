@@ -37,8 +37,8 @@ use super::system::{Cholesky, SolveError};
 use super::transfer::Transfer;
 
 /// CG stops when the error it leaves is estimated below this (in [0,1]
-/// units: 5e-4 of an 8-bit level, a twentieth of the band's default
-/// tolerance for 8-bit output, and an eighth of a 16-bit step). The
+/// units: 5e-4 of an 8-bit level, half the band's tolerance, and an eighth
+/// of a 16-bit step). The
 /// preconditioned iteration contracts the error by a steady ratio ρ per step
 /// (measured as the ratio of successive largest steps), so what remains after
 /// a step of size s is about s·ρ/(1 − ρ).
