@@ -74,7 +74,7 @@ pub struct EraseOptions {
     /// Largest change, in 8-bit levels, that fixing the texels outside the
     /// band may cause: SPEC §4 allows a thousandth. (A hundredth would take
     /// Fox from 1.97 M unknowns to 1.56 M and move one stored value in 12.6
-    /// million by a level; the contract is the contract.)
+    /// million by a level, but the SPEC does not allow it.)
     pub band_tolerance_levels: f64,
     /// Solve for every inside or free texel instead of a band (for tests and comparisons).
     pub full: bool,

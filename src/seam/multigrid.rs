@@ -38,10 +38,9 @@ use super::transfer::Transfer;
 
 /// CG stops when the error it leaves is estimated below this (in [0,1]
 /// units: 5e-4 of an 8-bit level, half the band's tolerance, and an eighth
-/// of a 16-bit step). The
-/// preconditioned iteration contracts the error by a steady ratio ρ per step
-/// (measured as the ratio of successive largest steps), so what remains after
-/// a step of size s is about s·ρ/(1 − ρ).
+/// of a 16-bit step). The preconditioned iteration contracts the error by a
+/// steady ratio ρ per step (measured as the ratio of successive largest
+/// steps), so what remains after a step of size s is about s·ρ/(1 − ρ).
 const ERROR_TOLERANCE: f64 = 5e-4 / 255.0;
 /// The ratio assumed until two steps have been measured, and its ceiling
 /// (above it the estimate would be unreliable; the rule then waits for the
