@@ -4,6 +4,7 @@
 pub mod assemble;
 pub mod coarse;
 pub mod erase;
+pub mod far_field;
 pub mod grid;
 pub mod masking;
 pub mod metric;
