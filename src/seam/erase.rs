@@ -300,8 +300,9 @@ fn first_band(
         .zip(dist.par_chunks(w).zip(movable.par_chunks(w)))
         .enumerate()
         .for_each(|(y, (band, (dist, movable)))| {
+            let estimate = field.row(&columns, y);
             for (x, b) in band.iter_mut().enumerate() {
-                *b = movable[x] && (dist[x] <= base || field.at(&columns, x, y) >= level);
+                *b = movable[x] && (dist[x] <= base || estimate(x) >= level);
             }
         });
     band

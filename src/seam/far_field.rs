@@ -106,17 +106,24 @@ impl FarField {
             .collect()
     }
 
-    /// The estimate at texel `x` of row `y`, interpolated bilinearly between
-    /// the cell centres; `columns` from [`Self::columns`].
-    pub fn at(&self, columns: &[(u32, u32, f64)], x: usize, y: usize) -> f64 {
+    /// The estimate along texel row `y`, interpolated bilinearly between the
+    /// cell centres: a function of the texel's column, with `columns` from
+    /// [`Self::columns`].
+    pub fn row<'a>(
+        &'a self,
+        columns: &'a [(u32, u32, f64)],
+        y: usize,
+    ) -> impl Fn(usize) -> f64 + 'a {
         let (y0, y1, fy) = between((y as f64 + 0.5) / self.factor as f64 - 0.5, self.rows);
-        let (x0, x1, fx) = columns[x];
-        let (x0, x1) = (x0 as usize, x1 as usize);
-        let (r0, r1) = (y0 * self.cols, y1 * self.cols);
-        let v = &self.values;
-        let top = v[r0 + x0] + fx * (v[r0 + x1] - v[r0 + x0]);
-        let bottom = v[r1 + x0] + fx * (v[r1 + x1] - v[r1 + x0]);
-        top + fy * (bottom - top)
+        let r0 = &self.values[y0 * self.cols..(y0 + 1) * self.cols];
+        let r1 = &self.values[y1 * self.cols..(y1 + 1) * self.cols];
+        move |x| {
+            let (x0, x1, fx) = columns[x];
+            let (x0, x1) = (x0 as usize, x1 as usize);
+            let top = r0[x0] + fx * (r0[x1] - r0[x0]);
+            let bottom = r1[x0] + fx * (r1[x1] - r1[x0]);
+            top + fy * (bottom - top)
+        }
     }
 }
 
@@ -177,7 +184,7 @@ mod tests {
         let columns = field.columns(w);
         for d in [0usize, 10, 40, 80] {
             let want = 0.5 * jump * ratio.powi(d as i32);
-            let got = field.at(&columns, w / 2, 256 + d);
+            let got = field.row(&columns, 256 + d)(w / 2);
             // The coarse cell (4 texels here) moves the seam by up to 2
             // texels: a factor r^±2 ≈ 0.81..1.23, and a little for the lattice.
             assert!(
@@ -193,7 +200,7 @@ mod tests {
         let (w, h) = (256, 256);
         let ratio: f64 = 0.9;
         let field = FarField::new(w, h, &[((128 * w + 128) as u32, 2.0)], ratio, 1e-6);
-        let got = field.at(&field.columns(w), 128, 128 + 40);
+        let got = field.row(&field.columns(w), 128 + 40)(128);
         assert!(got > 0.0);
         assert!(got < 0.1 * ratio.powi(40), "{got}");
     }
