@@ -23,9 +23,10 @@
 //! tolerance, a thousandth of an 8-bit level (SPEC §4; see [`EraseOptions`]).
 //! On Fox that is 1.78 M unknowns, where the largest 1D decay from any one
 //! seam texel took 1.97 M; neither needs a second solve. After the solve,
-//! wherever an edge texel's change implies a miss above the tolerance, the
-//! band widens around that texel by the decay steps still needed, and the
-//! system is solved again from the previous solution.
+//! wherever the changes of a texel's band neighbours imply a miss above the
+//! tolerance at a texel just outside (summed, where the band surrounds it
+//! on several sides), the band widens around that texel by the decay steps
+//! still needed, and the system is solved again from the previous solution.
 
 use rayon::prelude::*;
 
@@ -323,16 +324,16 @@ const GROWTH_MARGIN: f64 = 10.0;
 struct Growth {
     /// The widened band (`None` without leaks).
     band: Option<Vec<bool>>,
-    /// Edge texels whose change may leak more than the tolerance outside.
+    /// Texels just outside the band that may miss more than the tolerance.
     leaks: usize,
 }
 
 /// Texels per parallel task of [`grow_band`].
 const GROW_CHUNK: usize = 1 << 14;
 
-/// Widens the band around each edge texel whose implied miss outside (see the
-/// module docs) exceeds `tol`: by as many texels as the decay needs to bring
-/// it below, and only there.
+/// Widens the band around each texel just outside it whose implied miss (see
+/// the module docs) exceeds `tol`: by as many texels as the decay needs to
+/// bring it below, and only there.
 #[allow(clippy::too_many_arguments)]
 fn grow_band(
     grid: &TexelGrid,
@@ -346,28 +347,30 @@ fn grow_band(
 ) -> Growth {
     let (w, h) = (grid.width, grid.height);
     let decay_len = -1.0 / ratio.ln();
-    // The implied miss outside each edge texel (0 inside the band's interior).
-    let leak = |t: usize| {
-        if !band[t] {
+    // The implied miss at each texel just outside the band (0 elsewhere). The
+    // fixed texel s sees its band neighbours' changes as a source, which
+    // reaches s itself multiplied by the line factor r/(1 − r²) along a
+    // straight edge; where the band surrounds s on several sides, each of
+    // them pushes, so their changes add (taking one neighbour alone let a
+    // notch in the band miss more than the tolerance).
+    let leak = |s: usize| {
+        if band[s] || !movable[s] {
             return 0.0;
         }
-        let (x, y) = (t % w, t / w);
-        let outside = [
-            (x > 0).then(|| t - 1),
-            (x + 1 < w).then(|| t + 1),
-            (y > 0).then(|| t - w),
-            (y + 1 < h).then(|| t + w),
-        ]
-        .into_iter()
-        .flatten()
-        .any(|s| movable[s] && !band[s]);
-        if !outside {
-            return 0.0;
+        let (x, y) = (s % w, s / w);
+        let mut source = [0.0f64; 4];
+        let neighbours = [
+            (x > 0).then(|| s - 1),
+            (x + 1 < w).then(|| s + 1),
+            (y > 0).then(|| s - w),
+            (y + 1 < h).then(|| s + w),
+        ];
+        for t in neighbours.into_iter().flatten().filter(|&t| band[t]) {
+            for (c, sc) in source.iter_mut().enumerate().take(ch) {
+                *sc += f64::from((out[t * ch + c] - input[t * ch + c]).abs());
+            }
         }
-        let change = (0..ch)
-            .map(|c| f64::from((out[t * ch + c] - input[t * ch + c]).abs()))
-            .fold(0.0, f64::max);
-        change * ratio / (1.0 - ratio * ratio)
+        source.into_iter().fold(0.0, f64::max) * ratio / (1.0 - ratio * ratio)
     };
     // Usually there is none: then no texel needs marking.
     let leaks = (0..w * h)
