@@ -309,10 +309,12 @@ fn first_band(
     band
 }
 
-/// How far below the tolerance the first band's estimate reaches. Each leak
-/// costs a second solve: on Fox (local mode) a margin of 1 leaves two, 2
-/// none; on cube_gradient_128, whose change the estimate's neglect of the C1
-/// term shows most, 2 leaves two (1.3 and 1.2 times the tolerance), 3 none.
+/// How far below the tolerance the first band's estimate reaches. A leak
+/// costs a second solve: on Fox (local mode) margins of 1.5 and 2 leave one
+/// (1.69 M and 1.73 M unknowns first, 1.81 M and 1.82 M in the end), 3 none
+/// (1.78 M). blub and cube_gradient_1024 have none from 1.5 on;
+/// cube_gradient_128, whose change dies out within a dozen texels, has some
+/// at every margin tried (six at 3).
 const BAND_MARGIN: f64 = 3.0;
 
 /// The narrowest band, in decay lengths.
