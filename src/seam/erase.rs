@@ -295,13 +295,12 @@ fn first_band(
     let field = FarField::new(grid.width, grid.height, jumps, ratio, level);
     let base = (-MIN_BAND / ratio.ln()).ceil() as u32;
     let w = grid.width;
-    let columns = field.columns(w);
     let mut band = crate::heap::filled(grid.len(), false);
     band.par_chunks_mut(w)
         .zip(dist.par_chunks(w).zip(movable.par_chunks(w)))
         .enumerate()
         .for_each(|(y, (band, (dist, movable)))| {
-            let estimate = field.row(&columns, y);
+            let estimate = field.row(y);
             for (x, b) in band.iter_mut().enumerate() {
                 *b = movable[x] && (dist[x] <= base || estimate(x) >= level);
             }

@@ -39,6 +39,8 @@ pub struct FarField {
     cols: usize,
     rows: usize,
     values: Vec<f64>,
+    /// Where each texel column lies between cell centres (see [`between`]).
+    columns: Vec<(u32, u32, f64)>,
 }
 
 impl FarField {
@@ -86,41 +88,38 @@ impl FarField {
                 break;
             }
         }
+        let columns = (0..width)
+            .map(|x| between(centre(x, factor), cols))
+            .map(|(i, j, f)| (i as u32, j as u32, f))
+            .collect();
         FarField {
             factor,
             cols,
             rows,
             values,
+            columns,
         }
     }
 
-    /// Where each texel of a `width`-texel row lies between cell centres.
-    pub fn columns(&self, width: usize) -> Vec<(u32, u32, f64)> {
-        (0..width)
-            .map(|x| between((x as f64 + 0.5) / self.factor as f64 - 0.5, self.cols))
-            .map(|(i, j, f)| (i as u32, j as u32, f))
-            .collect()
-    }
-
     /// The estimate along texel row `y`, interpolated bilinearly between the
-    /// cell centres: a function of the texel's column, with `columns` from
-    /// [`Self::columns`].
-    pub fn row<'a>(
-        &'a self,
-        columns: &'a [(u32, u32, f64)],
-        y: usize,
-    ) -> impl Fn(usize) -> f64 + 'a {
-        let (y0, y1, fy) = between((y as f64 + 0.5) / self.factor as f64 - 0.5, self.rows);
+    /// cell centres: a function of the texel's column.
+    pub fn row(&self, y: usize) -> impl Fn(usize) -> f64 + '_ {
+        let (y0, y1, fy) = between(centre(y, self.factor), self.rows);
         let r0 = &self.values[y0 * self.cols..(y0 + 1) * self.cols];
         let r1 = &self.values[y1 * self.cols..(y1 + 1) * self.cols];
         move |x| {
-            let (x0, x1, fx) = columns[x];
+            let (x0, x1, fx) = self.columns[x];
             let (x0, x1) = (x0 as usize, x1 as usize);
             let top = r0[x0] + fx * (r0[x1] - r0[x0]);
             let bottom = r1[x0] + fx * (r1[x1] - r1[x0]);
             top + fy * (bottom - top)
         }
     }
+}
+
+/// Texel coordinate `t` in coarse cells (cell k's centre at k).
+fn centre(t: usize, factor: usize) -> f64 {
+    (t as f64 + 0.5) / factor as f64 - 0.5
 }
 
 /// The two cells around coarse coordinate `p` (clamped to 0..n) and the
@@ -177,10 +176,9 @@ mod tests {
         let jump = 2.0;
         let jumps: Vec<(u32, f64)> = (0..w).map(|x| ((256 * w + x) as u32, jump)).collect();
         let field = FarField::new(w, h, &jumps, ratio, 1e-6);
-        let columns = field.columns(w);
         for d in [0usize, 10, 40, 80] {
             let want = 0.5 * jump * ratio.powi(d as i32);
-            let got = field.row(&columns, 256 + d)(w / 2);
+            let got = field.row(256 + d)(w / 2);
             // The coarse cell (4 texels here) moves the seam by up to 2
             // texels: a factor r^±2 ≈ 0.81..1.23, and a little for the lattice.
             assert!(
@@ -196,7 +194,7 @@ mod tests {
         let (w, h) = (256, 256);
         let ratio: f64 = 0.9;
         let field = FarField::new(w, h, &[((128 * w + 128) as u32, 2.0)], ratio, 1e-6);
-        let got = field.row(&field.columns(w), 128 + 40)(128);
+        let got = field.row(128 + 40)(128);
         assert!(got > 0.0);
         assert!(got < 0.1 * ratio.powi(40), "{got}");
     }
