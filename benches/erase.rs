@@ -14,8 +14,9 @@ use seamstress::pipeline::{self, Format, Method, ProcessOptions};
 use seamstress::seam::erase::Mode;
 
 const MODELS: [&str; 2] = ["blub/blub.glb", "Fox/Fox.gltf"];
-/// Runs per row; the row shows the median one.
-const RUNS: usize = 3;
+/// Runs per row; the row shows the median one (this machine's speed varies by
+/// 10–20% from one run to the next).
+const RUNS: usize = 5;
 
 fn asset(rel: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
