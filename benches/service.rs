@@ -8,7 +8,6 @@
 //! `SEAMSTRESS_BENCH_ROUNDS` (default 2): jobs per client per model, so
 //! 16 × 2 × ROUNDS jobs in all. Every phase stops after 10 minutes.
 
-use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -16,6 +15,10 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use serde_json::{json, Value};
+
+#[path = "../tests/common/server.rs"]
+mod server;
+use server::Server;
 
 const CLIENTS: usize = 16;
 const PHASE_LIMIT: Duration = Duration::from_secs(600);
@@ -120,37 +123,9 @@ struct ServiceRun {
     bytes_out: u64,
 }
 
-fn start_server(data: &Path) -> (Child, String) {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_seamstress"))
-        .args([
-            "serve",
-            "--listen",
-            "127.0.0.1:0",
-            "--queue-size",
-            "256",
-            "--data",
-        ])
-        .arg(data)
-        .env_remove("SEAMSTRESS_TOKENS")
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("seamstress serve");
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().expect("stdout"))
-        .read_line(&mut line)
-        .expect("address line");
-    let addr = line
-        .trim()
-        .strip_prefix("listening on ")
-        .expect("listening on ADDR")
-        .to_string();
-    (child, format!("http://{addr}"))
-}
-
 async fn service(w: Workload, data: &Path) -> ServiceRun {
-    let (mut child, base) = start_server(data);
-    let pid = child.id();
+    let mut server = Server::start(data, &["--queue-size", "256"]);
+    let (pid, base) = (server.child.id(), server.base.clone());
     let peak = Arc::new(AtomicU64::new(0));
     let sampling = Arc::new(AtomicBool::new(true));
     let sampler = {
@@ -238,8 +213,7 @@ async fn service(w: Workload, data: &Path) -> ServiceRun {
     let elapsed = started.elapsed();
     sampling.store(false, Ordering::Relaxed);
     let _ = sampler.join();
-    let _ = child.kill();
-    let _ = child.wait();
+    server.kill();
     submit_ms.sort_by(|a, b| a.total_cmp(b));
     ServiceRun {
         done,

@@ -2,12 +2,12 @@
 //! requests for every operation (bounded in count and time, loopback only),
 //! and no answer may be a server error.
 
-use std::io::{BufRead, BufReader};
 use std::path::PathBuf;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 mod common;
+use common::server::Server;
 
 /// Far above the run's own bound (`--max-time`), for a hung request.
 const DEADLINE: Duration = Duration::from_secs(900);
@@ -22,30 +22,14 @@ fn no_generated_request_gets_a_server_error() {
     let _ = std::fs::remove_dir_all(&scratch);
     std::fs::create_dir_all(&scratch).unwrap();
 
-    let mut server = Command::new(env!("CARGO_BIN_EXE_seamstress"))
-        .args(["serve", "--listen", "127.0.0.1:0", "--data"])
-        .arg(scratch.join("data"))
-        .env_remove("SEAMSTRESS_TOKENS")
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("the server starts");
-    let mut line = String::new();
-    BufReader::new(server.stdout.take().unwrap())
-        .read_line(&mut line)
-        .expect("the server prints its address");
-    let addr = line
-        .trim()
-        .strip_prefix("listening on ")
-        .unwrap_or_else(|| panic!("unexpected first line {line:?}"))
-        .to_string();
+    let mut server = Server::start(&scratch.join("data"), &[]);
 
     // Run from the scratch folder: schemathesis keeps its example database
     // in the working directory.
     let mut run = Command::new("schemathesis")
         .arg("run")
         .arg(root.join("openapi.yaml"))
-        .args(["--url", &format!("http://{addr}")])
+        .args(["--url", &server.base])
         .args(["--checks", "not_a_server_error"])
         .args([
             "--max-examples",
@@ -76,8 +60,7 @@ fn no_generated_request_gets_a_server_error() {
         }
         std::thread::sleep(Duration::from_millis(200));
     };
-    let _ = server.kill();
-    let _ = server.wait();
+    server.kill();
     let (out, err) = (out.join().unwrap(), err.join().unwrap());
     let _ = std::fs::remove_dir_all(&scratch);
     assert!(

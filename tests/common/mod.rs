@@ -1,6 +1,8 @@
 //! What the integration tests share: the outside tools some of them compare
-//! against. (Each test file uses some of it.)
+//! against, and a running server. (Each test file uses some of it.)
 #![allow(dead_code)]
+
+pub mod server;
 
 use std::process::{Command, Stdio};
 
