@@ -4,7 +4,7 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use seamstress::bc1::dds::{read_dds, DdsHeaderKind};
+use seamstress::bc1::dds::{read_dds, write_dds, DdsHeaderKind, MipLevel};
 use seamstress::bc1::{self, Block};
 
 mod common;
@@ -110,8 +110,46 @@ fn legacy_header_holds_the_seam_aware_encoding() {
     );
 }
 
-/// Pillow decodes the 1/3 mixes to integers; our decoder keeps them exact,
-/// so the two agree to within one level.
+/// Pillow's reading of a DDS file, as 8-bit RGB: (width, height, texels).
+fn pillow_rgb(path: &Path) -> (u32, u32, Vec<u8>) {
+    let script = "import sys\nfrom PIL import Image\nim = Image.open(sys.argv[1]).convert('RGB')\nsys.stdout.write(f'{im.size[0]} {im.size[1]}\\n')\nsys.stdout.flush()\nsys.stdout.buffer.write(im.tobytes())";
+    let o = Command::new("python3")
+        .args(["-c", script])
+        .arg(path)
+        .output()
+        .expect("python3 runs");
+    assert!(
+        o.status.success(),
+        "Pillow failed on {}: {}",
+        path.display(),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let nl = o
+        .stdout
+        .iter()
+        .position(|&c| c == b'\n')
+        .expect("a size line");
+    let size = std::str::from_utf8(&o.stdout[..nl]).expect("an ASCII size line");
+    let (w, h) = size.split_once(' ').expect("width and height");
+    (
+        w.parse().expect("a width"),
+        h.parse().expect("a height"),
+        o.stdout[nl + 1..].to_vec(),
+    )
+}
+
+/// The largest difference, in 8-bit levels, between Pillow's texels and our
+/// decoder's. Pillow rounds the palette's 1/3 mixes to integers; ours keeps
+/// them exact, so the two agree to within one level.
+fn worst_difference(pillow: &[u8], ours: &[f32]) -> f32 {
+    assert_eq!(pillow.len(), ours.len());
+    pillow
+        .iter()
+        .zip(ours)
+        .map(|(&p, &d)| (f32::from(p) - d * 255.0).abs())
+        .fold(0.0f32, f32::max)
+}
+
 #[test]
 fn pillow_decodes_what_we_encoded() {
     if !common::PYTHON.available() {
@@ -119,28 +157,56 @@ fn pillow_decodes_what_we_encoded() {
     }
     let (out, report) = process("Duck/Duck.gltf", "pillow", &[]);
     let path = dds_path(&out, &report);
-    let script = "import sys\nfrom PIL import Image\nim = Image.open(sys.argv[1]).convert('RGB')\nsys.stdout.buffer.write(im.tobytes())";
-    let o = Command::new("python3")
-        .args(["-c", script, path.to_str().unwrap()])
-        .output()
-        .expect("python3 runs");
-    assert!(
-        o.status.success(),
-        "Pillow failed: {}",
-        String::from_utf8_lossy(&o.stderr)
-    );
+    let (w, h, pillow) = pillow_rgb(&path);
     let ours = read_dds(&std::fs::read(&path).unwrap()).unwrap();
     let l = &ours.levels[0];
+    assert_eq!((w, h), (l.width, l.height));
     let decoded = bc1::decode_image(&l.blocks, l.width as usize, l.height as usize).unwrap();
-    assert_eq!(o.stdout.len(), decoded.len());
-    let worst = o
-        .stdout
-        .iter()
-        .zip(&decoded)
-        .map(|(&p, &d)| (f32::from(p) - d * 255.0).abs())
-        .fold(0.0f32, f32::max);
+    let worst = worst_difference(&pillow, &decoded);
     assert!(
         worst <= 1.0,
         "Pillow and our decoder differ by {worst} levels"
     );
+}
+
+/// A size that is not a multiple of 4 (padded blocks), under both headers
+/// Pillow reads. (It does not read BC1_UNORM_SRGB, which differs from
+/// BC1_UNORM only in the format code.)
+#[test]
+fn pillow_reads_padded_blocks_under_both_headers() {
+    if !common::PYTHON.available() {
+        return;
+    }
+    let (w, h) = (37usize, 21usize);
+    let img: Vec<f32> = (0..w * h)
+        .flat_map(|i| {
+            let (x, y) = (i % w, i / w);
+            [
+                ((x * 3 + y) % 97) as f32 / 96.0,
+                (y % 31) as f32 / 30.0,
+                ((x ^ y) % 256) as f32 / 255.0,
+            ]
+        })
+        .collect();
+    let blocks = bc1::encode_image(&img, w, h, 3, bc1::Level::Default).unwrap();
+    let ours = bc1::decode_image(&blocks, w, h).unwrap();
+    let dir = std::env::temp_dir().join(format!("seamstress-dds-{}-odd", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    for (n, kind) in [DdsHeaderKind::Legacy, DdsHeaderKind::Dx10 { srgb: false }]
+        .into_iter()
+        .enumerate()
+    {
+        let levels = [MipLevel {
+            width: w as u32,
+            height: h as u32,
+            blocks: blocks.clone(),
+        }];
+        let path = dir.join(format!("t{n}.dds"));
+        std::fs::write(&path, write_dds(&levels, kind).unwrap()).unwrap();
+        let (pw, ph, pillow) = pillow_rgb(&path);
+        assert_eq!((pw as usize, ph as usize), (w, h), "{kind:?}");
+        let worst = worst_difference(&pillow, &ours);
+        assert!(worst <= 1.0, "{kind:?}: Pillow differs by {worst} levels");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
 }
