@@ -44,11 +44,13 @@ struct ProcessArgs {
     /// Folder for the outputs (created if missing).
     #[arg(long)]
     out: PathBuf,
+    /// How far from the seams texels may change.
     #[arg(long, value_enum, default_value = "local")]
     mode: Mode,
+    /// How the two sides of a seam are made to agree.
     #[arg(long, value_enum, default_value = "erase")]
     method: Method,
-    /// dds: a BC1 DDS per texture besides the erased PNG; png: the erased PNG only.
+    /// The files written for each texture.
     #[arg(long, value_enum, default_value = "dds")]
     format: Format,
     /// BC1 encoder effort: fast, default or best.

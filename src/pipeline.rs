@@ -26,10 +26,12 @@ use crate::seam::{colour_channels, psnr, SeamMetric, TexelClasses, TexelGrid};
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default, clap::ValueEnum, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Method {
-    /// Exact seam erasure (SPEC §4).
+    /// Both sides agree along the whole seam, integrated exactly
+    // (SPEC §4).
     #[default]
     Erase,
-    /// Sampled least-squares masking (the seeds' baseline).
+    /// Both sides agree at points sampled along the seams
+    // (the seeds' baseline, a simpler least-squares).
     Masking,
 }
 
@@ -37,7 +39,7 @@ pub enum Method {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default, clap::ValueEnum, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Format {
-    /// A BC1 DDS file (and the erased PNG).
+    /// A BC1 DDS file and the erased PNG.
     #[default]
     Dds,
     /// The erased PNG only.

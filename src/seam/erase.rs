@@ -45,8 +45,10 @@ use crate::model::SeamSet;
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default, clap::ValueEnum, serde::Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Mode {
+    /// Change only texels near the seams
     #[default]
     Local,
+    /// Let changes spread over the charts, for sides painted with a colour offset
     Global,
 }
 
