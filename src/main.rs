@@ -133,6 +133,22 @@ impl From<anyhow::Error> for Failure {
 }
 
 fn process(args: &ProcessArgs) -> Result<(), Failure> {
+    if !(args.seam_weight.is_finite() && args.seam_weight >= 0.0) {
+        return Err(Failure::BadInput(format!(
+            "--seam-weight must be a non-negative number, not {}",
+            args.seam_weight
+        )));
+    }
+    // Before the work, so that an unusable --out fails at once.
+    if args.out.exists() && !args.out.is_dir() {
+        return Err(Failure::BadInput(format!(
+            "--out {}: exists and is not a folder",
+            args.out.display()
+        )));
+    }
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("cannot create {}", args.out.display()))?;
+
     let load_opts = LoadOptions {
         max_texture_size: args.max_texture_size,
         extra_maps: args.extra_maps,
@@ -145,12 +161,6 @@ fn process(args: &ProcessArgs) -> Result<(), Failure> {
         Err(e) => return Err(Failure::Internal(e.into())),
     };
     let load_ms = t.elapsed().as_millis() as u64;
-    if !(args.seam_weight.is_finite() && args.seam_weight >= 0.0) {
-        return Err(Failure::BadInput(format!(
-            "--seam-weight must be a non-negative number, not {}",
-            args.seam_weight
-        )));
-    }
     let opts = ProcessOptions {
         mode: args.mode,
         method: args.method,
@@ -168,8 +178,6 @@ fn process(args: &ProcessArgs) -> Result<(), Failure> {
         .unwrap_or_default();
     let output = pipeline::run(&model, &name, load_ms, &opts).context("processing failed")?;
 
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("cannot create {}", args.out.display()))?;
     for f in &output.files {
         write_atomic(&args.out.join(&f.name), &f.bytes)?;
     }

@@ -186,6 +186,26 @@ fn texture_above_the_pixel_limit_is_refused() {
 }
 
 #[test]
+fn out_that_is_a_file_is_refused_and_left_alone() {
+    let model = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("examples/cube_gradient_128.glb");
+    let file = scratch("out-file");
+    std::fs::write(&file, b"keep me").unwrap();
+    let o = seamstress(&[
+        "process",
+        model.to_str().unwrap(),
+        "--out",
+        file.to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert_eq!(err.lines().count(), 1, "{err}");
+    assert!(err.contains(file.to_str().unwrap()), "{err}");
+    assert!(err.contains("not a folder"), "{err}");
+    assert_eq!(std::fs::read(&file).unwrap(), b"keep me");
+    let _ = std::fs::remove_file(&file);
+}
+
+#[test]
 fn repeated_runs_write_identical_files() {
     let model = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("examples/cube_gradient_128.glb");
     let (a, b) = (scratch("det-a"), scratch("det-b"));
