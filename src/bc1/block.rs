@@ -116,19 +116,19 @@ impl Block {
         p
     }
 
-    /// The palette in [0,1]: [`Block::palette255`] divided by 255. This is
+    /// The palette in \[0, 1\]: [`Block::palette255`] divided by 255. This is
     /// the value set that [`Block::decode`] returns.
     pub fn palette(&self) -> [[f32; 3]; 4] {
         self.palette255().map(|c| c.map(|v| v / 255.0))
     }
 
-    /// The sixteen texels in [0,1], row-major.
+    /// The sixteen texels in \[0, 1\], row-major.
     pub fn decode(&self) -> [[f32; 3]; 16] {
         let p = self.palette();
         std::array::from_fn(|k| p[self.index(k) as usize])
     }
 
-    /// Weighted squared error of this block against `texels` (both in [0,1]),
+    /// Weighted squared error of this block against `texels` (both in \[0, 1\]),
     /// Σ w_k·|decoded_k − texel_k|².
     pub fn error(&self, texels: &[[f32; 3]; 16], weights: &[f32; 16]) -> f32 {
         let d = self.decode();

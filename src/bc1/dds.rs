@@ -229,7 +229,7 @@ fn u32_at(bytes: &[u8], off: usize) -> u32 {
     u32::from_le_bytes(w)
 }
 
-/// Reads a BC1 DDS file (legacy `DXT1` or DX10 BC1_UNORM[_SRGB]).
+/// Reads a BC1 DDS file (legacy `DXT1` or DX10 `BC1_UNORM[_SRGB]`).
 pub fn read_dds(bytes: &[u8]) -> Result<DdsImage, DdsError> {
     if bytes.len() < 128 {
         return Err(DdsError::Truncated { len: bytes.len() });

@@ -222,7 +222,7 @@ struct Ends {
 }
 
 impl Group {
-    /// Raw values in, clamped to [0,1] (NaN to 0) and scaled to 0..255.
+    /// Raw values in, clamped to \[0, 1\] (NaN to 0) and scaled to 0..255.
     #[cfg_attr(not(debug_assertions), inline(always))]
     pub(crate) fn sanitize(&mut self) {
         for ch in 0..3 {

@@ -1,7 +1,7 @@
 //! BC1 (DXT1): block encoder at three effort levels, the exact float
 //! decoder that every metric uses, and DDS files (SPEC §5).
 //!
-//! Values are f32 RGB in [0,1] on both sides. The encoder minimises the
+//! Values are f32 RGB in \[0, 1\] on both sides. The encoder minimises the
 //! (optionally weighted) squared RGB error against the exact float palette;
 //! opaque output uses four-colour blocks only (c0 > c1, or c0 = c1 with all
 //! indices 0 for a solid block).
@@ -100,7 +100,7 @@ pub fn block_dims(width: usize, height: usize) -> (usize, usize) {
     (width.div_ceil(4).max(1), height.div_ceil(4).max(1))
 }
 
-/// Encodes one block of texels (row-major, RGB in [0,1]; values outside
+/// Encodes one block of texels (row-major, RGB in \[0, 1\]; values outside
 /// are clamped, NaN counts as 0).
 pub fn encode_block(texels: &[[f32; 3]; 16], level: Level) -> Block {
     encode_block_weighted(texels, &[1.0; 16], level)
@@ -116,7 +116,7 @@ pub fn encode_block_weighted(texels: &[[f32; 3]; 16], weights: &[f32; 16], level
 
 /// Encodes an image of `width`×`height` texels stored row-major with
 /// `stride_channels` f32 values per texel, of which the first three are
-/// RGB in [0,1]. Edges that are not a multiple of 4 are padded by
+/// RGB in \[0, 1\]. Edges that are not a multiple of 4 are padded by
 /// replicating the last row and column. Blocks are returned row-major.
 pub fn encode_image(
     rgb: &[f32],
@@ -155,7 +155,7 @@ pub fn encode_image(
 }
 
 /// Decodes row-major blocks to an RGB image of `width`×`height` texels
-/// (3 f32 per texel in [0,1], padding dropped).
+/// (3 f32 per texel in \[0, 1\], padding dropped).
 pub fn decode_image(blocks: &[Block], width: usize, height: usize) -> Result<Vec<f32>, Bc1Error> {
     if width == 0 || height == 0 {
         return Err(Bc1Error::Empty { width, height });
@@ -192,7 +192,7 @@ pub fn decode_image(blocks: &[Block], width: usize, height: usize) -> Result<Vec
 }
 
 /// RGB PSNR in dB of `decoded` against `reference`, both RGB f32 images of
-/// the same size (3 values per texel, in [0,1]): 10·log10(1/MSE).
+/// the same size (3 values per texel, in \[0, 1\]): 10·log10(1/MSE).
 /// Infinite when they are equal; `None` when the sizes differ or are empty.
 pub fn psnr(reference: &[f32], decoded: &[f32]) -> Option<f64> {
     if reference.len() != decoded.len() || reference.is_empty() {

@@ -83,7 +83,7 @@ pub struct SeamAwareStats {
 pub struct Problem<'a> {
     pub width: usize,
     pub height: usize,
-    /// The texture the blocks should reproduce: RGB in [0,1], `channels` per texel.
+    /// The texture the blocks should reproduce: RGB in \[0, 1\], `channels` per texel.
     pub target: &'a [f32],
     pub channels: usize,
     pub inside: &'a [bool],
@@ -129,7 +129,7 @@ impl State {
         Block { c0, c1, indices }
     }
 
-    /// Endpoint value of channel `ch` in [0,1].
+    /// Endpoint value of channel `ch` in \[0, 1\].
     #[inline]
     fn end(&self, e: usize, ch: usize) -> f64 {
         expand(self.q[e][ch], ch)
@@ -156,7 +156,7 @@ fn expand(q: i32, ch: usize) -> f64 {
     f64::from(v) / 255.0
 }
 
-/// The nearest 565 level to `v` in [0,1] for channel `ch`.
+/// The nearest 565 level to `v` in \[0, 1\] for channel `ch`.
 fn nearest_level(v: f64, ch: usize) -> i32 {
     let max = (1 << BITS[ch]) - 1;
     let guess = (v.clamp(0.0, 1.0) * f64::from(max)).round() as i32;

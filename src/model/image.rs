@@ -22,7 +22,7 @@ impl TextureEncoding {
 }
 
 /// A texture as the seam engine sees it: row-major texels, `channels` f32
-/// values in [0,1] each, in the image's stored encoding (no sRGB decode).
+/// values in \[0, 1\] each, in the image's stored encoding (no sRGB decode).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Texture {
     pub width: usize,
@@ -156,7 +156,7 @@ impl Texture {
 
     /// Writes the texels as PNG with the source's channel count and bit
     /// depth (JPEG sources come out as 8-bit PNG). Values are clamped to
-    /// [0,1] and rounded to the nearest level; the bytes depend only on the
+    /// \[0, 1\] and rounded to the nearest level; the bytes depend only on the
     /// texels.
     pub fn encode_png(&self) -> Result<Vec<u8>, TextureError> {
         let enc = self.encoding;

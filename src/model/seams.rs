@@ -13,7 +13,7 @@ const SAME_UV_TEXELS: f64 = 1e-3;
 
 /// A seam: one 3D edge mapped to two different UV half-edges.
 ///
-/// Both half-edges are oriented so that γ ∈ [0,1] is the same 3D point on
+/// Both half-edges are oriented so that γ ∈ \[0, 1\] is the same 3D point on
 /// both: `a[0]`/`b[0]` are the UVs of the same welded vertex.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SeamEdge {

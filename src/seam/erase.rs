@@ -412,7 +412,7 @@ fn grow_band(
     }
 }
 
-/// reach[i] = max over j of reach[j] − chebyshev(i, j): two raster passes.
+/// `reach[i] = max over j of reach[j] − chebyshev(i, j)`: two raster passes.
 ///
 /// Each pass takes a row at a time: first what the finished row before it
 /// gives (three neighbours each, no dependence along the row, so the loop

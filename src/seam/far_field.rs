@@ -18,7 +18,7 @@
 //! result exact, and the caller leaves a margin so that it rarely has to.
 //!
 //! The response is smooth on the scale of the decay length L, so it is found
-//! on a lattice coarser by a power of two F with L/F ≥ [`MIN_CELLS_PER_DECAY`]:
+//! on a lattice coarser by a power of two F with L/F ≥ `MIN_CELLS_PER_DECAY`:
 //! there (c·F² − Δ)P = the sources summed per cell, which over-relaxed
 //! red–black Gauss–Seidel solves from zero (Fox: 51 sweeps of a 256² lattice,
 //! about 15 ms). The texture's edges are mirrors, as the texel lattice has no

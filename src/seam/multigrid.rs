@@ -36,7 +36,7 @@ use super::stencil::StencilMatrix;
 use super::system::{Cholesky, SolveError};
 use super::transfer::Transfer;
 
-/// CG stops when the error it leaves is estimated below this (in [0,1]
+/// CG stops when the error it leaves is estimated below this (in \[0, 1\]
 /// units: 5e-4 of an 8-bit level, half the band's tolerance, and an eighth
 /// of a 16-bit step). The preconditioned iteration contracts the error by a
 /// steady ratio ρ per step (measured as the ratio of successive largest

@@ -1,7 +1,7 @@
 //! Exact integration along half-edges (SPEC §3).
 //!
 //! Along a straight half-edge the bilinear interpolant is a quadratic in γ
-//! inside each texel cell. Splitting [0,1] wherever either half-edge crosses
+//! inside each texel cell. Splitting \[0, 1\] wherever either half-edge crosses
 //! an integer x or y leaves pieces on which every integrand we need (D: degree
 //! 4; the C1 term: degree 2) is a polynomial of degree ≤ 5, which 3-point
 //! Gauss–Legendre integrates exactly. So each integral becomes a weighted sum
@@ -84,9 +84,9 @@ pub struct SidePoint {
     pub p: [f64; 2],
 }
 
-/// Calls `f(weight, points)` for every Gauss point of the pieces of [0,1]
+/// Calls `f(weight, points)` for every Gauss point of the pieces of \[0, 1\]
 /// delimited by the cell crossings of all `segs`; `weight` integrates over
-/// γ ∈ [0,1] (the weights sum to 1). `points[k]` is the point on `segs[k]`.
+/// γ ∈ \[0, 1\] (the weights sum to 1). `points[k]` is the point on `segs[k]`.
 pub fn for_each_gauss_point<const N: usize>(
     segs: &[Segment; N],
     mut f: impl FnMut(f64, &[SidePoint; N]),

@@ -556,7 +556,7 @@ fn galerkin_lattice_row<A: Rows + ?Sized>(
 /// (centre, side) shared by the level, `off` is the fine lattice's
 /// off-diagonal value and d a row's own. The finest lattice's full
 /// five-point rows have this form with a = (1, 0) and b = (0, 1); a bilinear
-/// Galerkin product keeps it (see [`coarsen_1d`]), so most of every coarse
+/// Galerkin product keeps it (see `coarsen_1d`), so most of every coarse
 /// level can be written in closed form.
 #[derive(Clone, Debug, Default)]
 pub struct TensorRows {

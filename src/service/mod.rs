@@ -1,9 +1,9 @@
 //! The HTTP service: uploads, a durable job queue, a worker pool, results.
 //!
-//! `seamstress serve` accepts models over HTTP ([`api`]), stores each job
+//! `seamstress serve` accepts models over HTTP (`api`), stores each job
 //! and its upload durably before answering, and a pool of workers
-//! ([`worker`]) runs the same loader and pipeline as `seamstress process`
-//! ([`engine`]) off the async runtime. Routes and workers reach storage only
+//! (`worker`) runs the same loader and pipeline as `seamstress process`
+//! (`engine`) off the async runtime. Routes and workers reach storage only
 //! through the [`store::JobStore`] and [`store::FileStore`] traits; the
 //! embedded implementations are SQLite ([`sqlite`]) and a local folder
 //! ([`files`]).
