@@ -188,11 +188,178 @@ fn local_erasure_closes_fox_seams() {
     let r = run("Fox/Fox.gltf", Mode::Local, Method::Erase);
     let (rms, psnr, _) = erased(&r);
     assert!(rms <= 0.3, "Fox: seam_rms {rms}");
-    // Some Fox charts meet neighbours of another colour, which local erasure must blend.
+    // One small Fox chart is painted another colour than the charts across
+    // its seams, so closing them must repaint it (see the chart test below).
     let psnr = psnr.expect("something changed");
     assert!(psnr >= 37.0, "Fox: psnr {psnr}");
     assert_seam_aware_gain("Fox", &r);
     assert_first_band_holds("Fox", &r);
+}
+
+/// One UV chart of a texture: its triangles' inside texels, how far its
+/// seams disagree in the input, and the erased texture's PSNR over it.
+#[derive(Debug)]
+struct ChartFigures {
+    texels: usize,
+    input_seam_rms: f64,
+    /// Squared error (values in \[0, 1\]) summed over the chart's inside
+    /// texels and colour channels, and how many values that sums.
+    error: f64,
+    values: usize,
+}
+
+impl ChartFigures {
+    fn psnr(&self) -> f64 {
+        10.0 * (self.values as f64 / self.error).log10()
+    }
+}
+
+/// Splits the first texture's triangles into charts (joined across edges
+/// whose UVs are identical) and measures each against the erased PNG that
+/// local erasure writes.
+fn chart_figures(rel: &str) -> Vec<ChartFigures> {
+    use seamstress::model::{SeamSet, Texture};
+    use seamstress::pipeline::Format;
+    use seamstress::seam::texels::inside_mask;
+    use std::collections::HashMap;
+
+    let (b, grid, seams) = first_texture(rel);
+    let tris = &b.triangles;
+    let uv_edge = |p: [f64; 2], q: [f64; 2]| {
+        let (p, q) = (p.map(f64::to_bits), q.map(f64::to_bits));
+        if p <= q {
+            (p, q)
+        } else {
+            (q, p)
+        }
+    };
+    let mut parent: Vec<usize> = (0..tris.len()).collect();
+    fn root(parent: &mut [usize], mut i: usize) -> usize {
+        while parent[i] != i {
+            parent[i] = parent[parent[i]];
+            i = parent[i];
+        }
+        i
+    }
+    let mut owner = HashMap::new();
+    for (i, t) in tris.iter().enumerate() {
+        for k in 0..3 {
+            let e = (t.group, uv_edge(t.uvs[k], t.uvs[(k + 1) % 3]));
+            if let Some(&j) = owner.get(&e) {
+                let (ri, rj) = (root(&mut parent, i), root(&mut parent, j));
+                parent[ri] = rj;
+            } else {
+                owner.insert(e, i);
+            }
+        }
+    }
+    let roots: Vec<usize> = (0..tris.len()).map(|i| root(&mut parent, i)).collect();
+    let mut ids: Vec<usize> = roots.clone();
+    ids.sort_unstable();
+    ids.dedup();
+    let chart_of = |r: usize| ids.binary_search(&r).unwrap();
+    // Seam sides carry their triangle's UVs bit for bit; the group is not
+    // needed to find the side's triangle among edges with these UVs.
+    let by_uvs: HashMap<_, usize> = owner.iter().map(|(&(_, e), &t)| (e, t)).collect();
+    let side_chart = |uv: [[f64; 2]; 2]| {
+        let t = by_uvs[&uv_edge(uv[0], uv[1])];
+        chart_of(roots[t])
+    };
+
+    let m = load(rel);
+    let opts = ProcessOptions {
+        format: Format::Png,
+        ..ProcessOptions::default()
+    };
+    let out = pipeline::run(&m, rel, 0, &opts).unwrap();
+    let png = out
+        .files
+        .iter()
+        .find(|f| f.name == format!("{}.erased.png", b.name))
+        .expect("the erased PNG");
+    let erased = Texture::decode(&png.bytes, u32::MAX).unwrap();
+    let t = &b.texture;
+    assert_eq!(
+        (erased.channels, erased.data.len()),
+        (t.channels, t.data.len())
+    );
+    let cc = colour_channels(t.channels);
+
+    (0..ids.len())
+        .map(|c| {
+            let chart_tris: Vec<_> = (0..tris.len())
+                .filter(|&i| chart_of(roots[i]) == c)
+                .map(|i| tris[i])
+                .collect();
+            let inside = inside_mask(&grid, &chart_tris);
+            let own = SeamSet {
+                seams: seams
+                    .seams
+                    .iter()
+                    .filter(|s| side_chart(s.a) == c || side_chart(s.b) == c)
+                    .copied()
+                    .collect(),
+                silhouettes: Vec::new(),
+            };
+            let input_seam_rms = SeamMetric::new(&grid, &own)
+                .seam_rms(&t.data, t.channels, cc)
+                .unwrap_or(0.0);
+            let (mut error, mut values) = (0.0, 0);
+            for (i, _) in inside.iter().enumerate().filter(|(_, &m)| m) {
+                for ch in 0..cc {
+                    let k = i * t.channels + ch;
+                    error += f64::from(erased.data[k] - t.data[k]).powi(2);
+                }
+                values += cc;
+            }
+            ChartFigures {
+                texels: values / cc,
+                input_seam_rms,
+                error,
+                values,
+            }
+        })
+        .collect()
+}
+
+/// The fidelity bound (inside-texel PSNR ≥ 40 dB) holds wherever
+/// the input's two sides roughly agree: over every chart whose seams
+/// disagree by under 32 levels RMS, and over all of them together. On Fox
+/// that leaves out one small chart whose seams disagree by about 90 levels;
+/// on blub, nothing.
+#[test]
+fn erasure_keeps_charts_whose_sides_roughly_agree() {
+    const ROUGHLY_AGREE: f64 = 32.0;
+    for (rel, left_out) in [("Fox/Fox.gltf", 1), ("blub/blub.glb", 0)] {
+        let charts = chart_figures(rel);
+        for c in &charts {
+            eprintln!("{rel}: {c:?}, psnr {:.2}", c.psnr());
+        }
+        let (agree, disagree): (Vec<_>, Vec<_>) = charts
+            .iter()
+            .partition(|c| c.input_seam_rms < ROUGHLY_AGREE);
+        assert_eq!(disagree.len(), left_out, "{rel}: {charts:#?}");
+        for c in &agree {
+            assert!(
+                c.error == 0.0 || c.psnr() >= 40.0,
+                "{rel}: chart {c:?} psnr {}",
+                c.psnr()
+            );
+        }
+        let error: f64 = agree.iter().map(|c| c.error).sum();
+        let values: usize = agree.iter().map(|c| c.values).sum();
+        let psnr = 10.0 * (values as f64 / error).log10();
+        assert!(
+            psnr >= 40.0,
+            "{rel}: psnr {psnr} over the charts that agree"
+        );
+        // What is left out is a small part of the texture.
+        let texels = |v: &[&ChartFigures]| v.iter().map(|c| c.texels).sum::<usize>();
+        assert!(
+            texels(&disagree) * 20 < texels(&agree),
+            "{rel}: {charts:#?}"
+        );
+    }
 }
 
 #[test]
