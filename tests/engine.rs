@@ -349,6 +349,7 @@ fn erasure_keeps_charts_whose_sides_roughly_agree() {
         let error: f64 = agree.iter().map(|c| c.error).sum();
         let values: usize = agree.iter().map(|c| c.values).sum();
         let psnr = 10.0 * (values as f64 / error).log10();
+        eprintln!("{rel}: psnr {psnr:.2} over the charts that agree");
         assert!(
             psnr >= 40.0,
             "{rel}: psnr {psnr} over the charts that agree"
