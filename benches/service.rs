@@ -37,8 +37,13 @@ fn variant(glb: &[u8], n: u64) -> Vec<u8> {
 
 /// Peak resident memory of a process, in MiB, while it lives.
 fn peak_rss_mib(pid: u32) -> Option<f64> {
+    status_mib(pid, "VmHWM:")
+}
+
+/// A memory figure of `/proc/PID/status` (`VmHWM:`, `VmRSS:`) in MiB.
+fn status_mib(pid: u32, field: &str) -> Option<f64> {
     let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
-    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let line = status.lines().find(|l| l.starts_with(field))?;
     let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
     Some(kb / 1024.0)
 }
@@ -120,6 +125,7 @@ struct ServiceRun {
     elapsed: Duration,
     submit_ms: Vec<f64>,
     peak_mib: f64,
+    idle_mib: f64,
     bytes_out: u64,
 }
 
@@ -213,6 +219,9 @@ async fn service(w: Workload, data: &Path) -> ServiceRun {
     let elapsed = started.elapsed();
     sampling.store(false, Ordering::Relaxed);
     let _ = sampler.join();
+    // An idle worker hands freed memory back; give it a moment to notice.
+    std::thread::sleep(Duration::from_secs(3));
+    let idle_mib = status_mib(pid, "VmRSS:").unwrap_or(f64::NAN);
     server.kill();
     submit_ms.sort_by(|a, b| a.total_cmp(b));
     ServiceRun {
@@ -220,6 +229,7 @@ async fn service(w: Workload, data: &Path) -> ServiceRun {
         elapsed,
         submit_ms,
         peak_mib: peak.load(Ordering::Relaxed) as f64 / 1024.0,
+        idle_mib,
         bytes_out,
     }
 }
@@ -267,8 +277,9 @@ fn main() {
         run.submit_ms.len()
     );
     println!(
-        "server peak memory: {:.0} MiB; DDS downloaded: {:.1} MiB",
+        "server memory: peak {:.0} MiB, {:.0} MiB once idle; DDS downloaded: {:.1} MiB",
         run.peak_mib,
+        run.idle_mib,
         run.bytes_out as f64 / (1 << 20) as f64
     );
     let ratio = rate / cli_rate;

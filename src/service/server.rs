@@ -103,7 +103,8 @@ async fn run(cfg: Config, addrs: Vec<SocketAddr>) -> Result<(), ServeError> {
     let app: Shared = Arc::new(App::new(cfg, jobs, files));
 
     for index in 0..workers {
-        tokio::spawn(worker::worker(app.clone(), index));
+        let thread = worker::JobThread::spawn(index)?;
+        tokio::spawn(worker::worker(app.clone(), index, thread));
     }
     tokio::spawn(reaper(app.clone()));
 

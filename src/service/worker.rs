@@ -1,11 +1,13 @@
 //! The worker pool: each worker claims the oldest queued job from the job
 //! store, runs it on a blocking thread, and stores its files and outcome.
 
+use std::panic::AssertUnwindSafe;
 use std::sync::atomic::{AtomicU8, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use sha2::{Digest, Sha256};
+use tokio::sync::oneshot;
 use tracing::Instrument;
 
 use super::app::{stop_of, Shared, RUN, TIMED_OUT};
@@ -23,7 +25,51 @@ pub const MAX_ATTEMPTS: u32 = 3;
 /// processes sharing the store may have queued work.
 const POLL: Duration = Duration::from_secs(1);
 
-pub async fn worker(app: Shared, index: usize) {
+/// A worker's own thread for the engine: every job of the worker runs on it.
+///
+/// The engine's dense kernels (faer's gemm) keep a scratch buffer of twice
+/// the L3 cache in every thread that runs them, for the thread's life. On
+/// tokio's blocking pool, whose threads come and go, each new thread that
+/// ran a job added one (64 MB here), and the heap kept the pages after the
+/// thread ended: a server's resident memory grew with the jobs it had run.
+/// With one thread per worker there are as many buffers as workers.
+pub struct JobThread {
+    tasks: std::sync::mpsc::Sender<Box<dyn FnOnce() + Send>>,
+}
+
+impl JobThread {
+    pub fn spawn(index: usize) -> std::io::Result<JobThread> {
+        let (tasks, queue) = std::sync::mpsc::channel::<Box<dyn FnOnce() + Send>>();
+        std::thread::Builder::new()
+            .name(format!("seamstress-job-{index}"))
+            .spawn(move || {
+                for task in queue {
+                    task();
+                }
+            })?;
+        Ok(JobThread { tasks })
+    }
+
+    /// Runs `f` on the thread, inside the caller's tracing span. The answer
+    /// is `f`'s result, or an error if `f` panicked (the thread lives on).
+    fn run<T: Send + 'static>(
+        &self,
+        f: impl FnOnce() -> T + Send + 'static,
+    ) -> oneshot::Receiver<std::thread::Result<T>> {
+        let (answer, receiver) = oneshot::channel();
+        let span = tracing::Span::current();
+        let task = Box::new(move || {
+            let _entered = span.enter();
+            let _ = answer.send(std::panic::catch_unwind(AssertUnwindSafe(f)));
+        });
+        // If the thread is gone, the task and its sender drop here, and the
+        // receiver reports that.
+        let _ = self.tasks.send(task);
+        receiver
+    }
+}
+
+pub async fn worker(app: Shared, index: usize, thread: JobThread) {
     let mut stopping = app.stopping.subscribe();
     // Whether jobs have run since this worker last handed freed memory back.
     let mut used = false;
@@ -35,7 +81,7 @@ pub async fn worker(app: Shared, index: usize) {
         let claimed = tokio::task::spawn_blocking(move || store.claim(now_ms())).await;
         match claimed {
             Ok(Ok(Some(job))) => {
-                run(&app, job).await;
+                run(&app, job, &thread).await;
                 used = true;
             }
             Ok(Ok(None)) => {
@@ -64,7 +110,7 @@ pub async fn worker(app: Shared, index: usize) {
     }
 }
 
-async fn run(app: &Shared, job: Job) {
+async fn run(app: &Shared, job: Job, thread: &JobThread) {
     let id = job.id.clone();
     let span = tracing::info_span!("job", job_id = %id);
     async {
@@ -79,7 +125,7 @@ async fn run(app: &Shared, job: Job) {
         let deadline = tokio::time::Instant::now() + app.cfg.job_timeout;
         let snapshot = job.clone();
         let (task_app, task_flag) = (app.clone(), flag.clone());
-        let mut handle = tokio::task::spawn_blocking(move || execute(&task_app, job, &task_flag));
+        let mut handle = thread.run(move || execute(&task_app, job, &task_flag));
         let outcome = tokio::select! {
             r = &mut handle => r,
             _ = tokio::time::sleep_until(deadline) => {
@@ -91,11 +137,12 @@ async fn run(app: &Shared, job: Job) {
             }
         };
         match outcome {
-            Ok(Ok(state)) => {
+            Ok(Ok(Ok(state))) => {
                 tracing::info!(state = state.as_str(), "job ended");
             }
-            Ok(Err(e)) => tracing::error!(error = %e, "job store failed during the job"),
-            Err(e) => tracing::error!(error = %e, "job thread failed"),
+            Ok(Ok(Err(e))) => tracing::error!(error = %e, "job store failed during the job"),
+            Ok(Err(_)) => tracing::error!("job thread panicked"),
+            Err(_) => tracing::error!("job thread is gone"),
         }
         app.running().remove(&id);
         app.metrics.busy_workers.fetch_sub(1, Ordering::Relaxed);
@@ -127,8 +174,8 @@ async fn time_out(app: &Shared, mut job: Job) {
     }
 }
 
-/// Runs a claimed job to its end on the current (blocking) thread and
-/// returns the state it ended in.
+/// Runs a claimed job to its end on the current thread (the worker's
+/// [`JobThread`]) and returns the state it ended in.
 fn execute(app: &Shared, mut job: Job, flag: &AtomicU8) -> Result<JobState, StoreError> {
     let started = Instant::now();
     if let Some(earlier) = app.jobs.find_succeeded(&job.owner, &job.input_key)? {
