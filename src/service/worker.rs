@@ -124,6 +124,7 @@ async fn run(app: &Shared, job: Job, thread: &JobThread) {
 
         let deadline = tokio::time::Instant::now() + app.cfg.job_timeout;
         let snapshot = job.clone();
+        let snapshot_for_panic = job.clone();
         let (task_app, task_flag) = (app.clone(), flag.clone());
         let mut handle = thread.run(move || execute(&task_app, job, &task_flag));
         let outcome = tokio::select! {
@@ -141,8 +142,21 @@ async fn run(app: &Shared, job: Job, thread: &JobThread) {
                 tracing::info!(state = state.as_str(), "job ended");
             }
             Ok(Ok(Err(e))) => tracing::error!(error = %e, "job store failed during the job"),
-            Ok(Err(_)) => tracing::error!("job thread panicked"),
-            Err(_) => tracing::error!("job thread is gone"),
+            // A bug, not the input's fault: the job fails rather than stay
+            // running for ever.
+            Ok(Err(_)) | Err(_) => {
+                tracing::error!("job thread panicked");
+                let message = "the engine failed unexpectedly".to_string();
+                if fail_running(app, snapshot_for_panic, "internal", message).await {
+                    let (files, id) = (app.files.clone(), id.clone());
+                    let deleted =
+                        tokio::task::spawn_blocking(move || files.delete_prefix(&keys::job(&id)))
+                            .await;
+                    if !matches!(deleted, Ok(Ok(()))) {
+                        tracing::error!("cannot delete the failed job's files");
+                    }
+                }
+            }
         }
         app.running().remove(&id);
         app.metrics.busy_workers.fetch_sub(1, Ordering::Relaxed);
@@ -152,25 +166,40 @@ async fn run(app: &Shared, job: Job, thread: &JobThread) {
     .await
 }
 
-async fn time_out(app: &Shared, mut job: Job) {
+async fn time_out(app: &Shared, job: Job) {
     let limit = app.cfg.job_timeout.as_secs();
+    let message = format!("the job took longer than its limit of {limit} s");
+    if fail_running(app, job, "timeout", message).await {
+        tracing::warn!(limit_s = limit, "job timed out");
+    }
+}
+
+/// Records a running job as failed from outside its thread; false if the
+/// store no longer had it running (or could not be written).
+async fn fail_running(app: &Shared, mut job: Job, code: &str, message: String) -> bool {
     job.state = JobState::Failed;
     job.finished_ms = Some(now_ms());
     job.progress = Progress::at("done", job.progress.fraction);
     job.error = Some(JobError {
-        code: "timeout".into(),
-        message: format!("the job took longer than its limit of {limit} s"),
+        code: code.into(),
+        message,
     });
     let store = app.jobs.clone();
     match tokio::task::spawn_blocking(move || store.update_running(&job)).await {
         Ok(Ok(true)) => {
-            tracing::warn!(limit_s = limit, "job timed out");
             app.metrics.finished(JobState::Failed);
             app.announce_finished();
+            true
         }
-        Ok(Ok(false)) => {}
-        Ok(Err(e)) => tracing::error!(error = %e, "cannot record the time-out"),
-        Err(e) => tracing::error!(error = %e, "time-out task failed"),
+        Ok(Ok(false)) => false,
+        Ok(Err(e)) => {
+            tracing::error!(error = %e, code, "cannot record the failure");
+            false
+        }
+        Err(e) => {
+            tracing::error!(error = %e, code, "failure task failed");
+            false
+        }
     }
 }
 
@@ -356,5 +385,27 @@ pub fn content_type(name: &str) -> &'static str {
         "gltf" => "model/gltf+json",
         "glb" => "model/gltf-binary",
         _ => "application/octet-stream",
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::JobThread;
+
+    #[test]
+    fn jobs_share_one_thread_that_outlives_a_panic() {
+        let t = JobThread::spawn(7).unwrap();
+        let thread = || std::thread::current().id();
+        let before = t.run(thread).blocking_recv().unwrap().unwrap();
+        let panicked = t.run(|| -> u32 { panic!("a bug in a job") });
+        assert!(panicked.blocking_recv().unwrap().is_err());
+        let after = t.run(thread).blocking_recv().unwrap().unwrap();
+        assert_eq!(before, after);
+        assert_ne!(before, std::thread::current().id());
+        let name = t.run(|| std::thread::current().name().map(str::to_owned));
+        assert_eq!(
+            name.blocking_recv().unwrap().unwrap().as_deref(),
+            Some("seamstress-job-7")
+        );
     }
 }
