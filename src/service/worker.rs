@@ -124,14 +124,13 @@ async fn run(app: &Shared, job: Job, thread: &JobThread) {
 
         let deadline = tokio::time::Instant::now() + app.cfg.job_timeout;
         let snapshot = job.clone();
-        let snapshot_for_panic = job.clone();
         let (task_app, task_flag) = (app.clone(), flag.clone());
         let mut handle = thread.run(move || execute(&task_app, job, &task_flag));
         let outcome = tokio::select! {
             r = &mut handle => r,
             _ = tokio::time::sleep_until(deadline) => {
                 flag.store(TIMED_OUT, Ordering::Release);
-                time_out(app, snapshot).await;
+                time_out(app, &snapshot).await;
                 // The thread stops at its next checkpoint; the slot stays
                 // taken until then so that no more jobs run than workers.
                 handle.await
@@ -147,7 +146,7 @@ async fn run(app: &Shared, job: Job, thread: &JobThread) {
             Ok(Err(_)) | Err(_) => {
                 tracing::error!("job thread panicked");
                 let message = "the engine failed unexpectedly".to_string();
-                if fail_running(app, snapshot_for_panic, "internal", message).await {
+                if fail_running(app, &snapshot, "internal", message).await {
                     let (files, id) = (app.files.clone(), id.clone());
                     let deleted =
                         tokio::task::spawn_blocking(move || files.delete_prefix(&keys::job(&id)))
@@ -166,7 +165,7 @@ async fn run(app: &Shared, job: Job, thread: &JobThread) {
     .await
 }
 
-async fn time_out(app: &Shared, job: Job) {
+async fn time_out(app: &Shared, job: &Job) {
     let limit = app.cfg.job_timeout.as_secs();
     let message = format!("the job took longer than its limit of {limit} s");
     if fail_running(app, job, "timeout", message).await {
@@ -176,7 +175,8 @@ async fn time_out(app: &Shared, job: Job) {
 
 /// Records a running job as failed from outside its thread; false if the
 /// store no longer had it running (or could not be written).
-async fn fail_running(app: &Shared, mut job: Job, code: &str, message: String) -> bool {
+async fn fail_running(app: &Shared, job: &Job, code: &str, message: String) -> bool {
+    let mut job = job.clone();
     job.state = JobState::Failed;
     job.finished_ms = Some(now_ms());
     job.progress = Progress::at("done", job.progress.fraction);
