@@ -8,8 +8,10 @@
 //! reuse pages that are already there. The cost is that a process keeps its
 //! high-water mark: a service's worker gives it back with
 //! [`release_freed_memory`] when it runs out of jobs, not after each one
-//! (back to back, jobs reuse each other's pages: 16 clients on blub and
-//! BoxTextured, 90 → 107–118 jobs a minute, the server's peak 964 → 1501–1538 MiB).
+//! (back to back, jobs reuse each other's pages). With these settings
+//! `cargo bench --bench service` (16 clients on blub and BoxTextured, two
+//! workers) went from 174 to 188 jobs a minute, and the server's peak from
+//! 1323 to 1050 MiB: one heap shared by all threads also fragments less.
 //!
 //! All threads share the one heap. Each of rayon's threads would otherwise get
 //! an arena of its own, built from 64 MB mmap'd heaps that glibc unmaps as
