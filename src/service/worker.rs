@@ -1,5 +1,6 @@
 //! The worker pool: each worker claims the oldest queued job from the job
-//! store, runs it on a blocking thread, and stores its files and outcome.
+//! store, runs it on a thread of the worker's own, and stores its files and
+//! outcome.
 
 use std::panic::AssertUnwindSafe;
 use std::sync::atomic::{AtomicU8, Ordering};
