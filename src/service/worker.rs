@@ -123,6 +123,7 @@ async fn run(app: &Shared, job: Job, thread: &JobThread) {
         }
         tracing::info!(attempt = job.attempts, input = %job.input.name, "job started");
 
+        let started = Instant::now();
         let deadline = tokio::time::Instant::now() + app.cfg.job_timeout;
         let snapshot = job.clone();
         let (task_app, task_flag) = (app.clone(), flag.clone());
@@ -131,7 +132,7 @@ async fn run(app: &Shared, job: Job, thread: &JobThread) {
             r = &mut handle => r,
             _ = tokio::time::sleep_until(deadline) => {
                 flag.store(TIMED_OUT, Ordering::Release);
-                time_out(app, &snapshot).await;
+                time_out(app, snapshot.clone()).await;
                 // The thread stops at its next checkpoint; the slot stays
                 // taken until then so that no more jobs run than workers.
                 handle.await
@@ -142,19 +143,18 @@ async fn run(app: &Shared, job: Job, thread: &JobThread) {
                 tracing::info!(state = state.as_str(), "job ended");
             }
             Ok(Ok(Err(e))) => tracing::error!(error = %e, "job store failed during the job"),
-            // A bug, not the input's fault: the job fails rather than stay
-            // running for ever.
+            // A bug, not the input's fault: the job fails as any failed job
+            // does, rather than stay running for ever.
             Ok(Err(_)) | Err(_) => {
                 tracing::error!("job thread panicked");
-                let message = "the engine failed unexpectedly".to_string();
-                if fail_running(app, &snapshot, "internal", message).await {
-                    let (files, id) = (app.files.clone(), id.clone());
-                    let deleted =
-                        tokio::task::spawn_blocking(move || files.delete_prefix(&keys::job(&id)))
-                            .await;
-                    if !matches!(deleted, Ok(Ok(()))) {
-                        tracing::error!("cannot delete the failed job's files");
-                    }
+                let (task_app, job) = (app.clone(), snapshot);
+                let message = "the engine failed unexpectedly";
+                let failed = tokio::task::spawn_blocking(move || {
+                    fail(&task_app, job, "internal", message, started)
+                })
+                .await;
+                if !matches!(failed, Ok(Ok(_))) {
+                    tracing::error!("cannot record the failure");
                 }
             }
         }
@@ -166,41 +166,25 @@ async fn run(app: &Shared, job: Job, thread: &JobThread) {
     .await
 }
 
-async fn time_out(app: &Shared, job: &Job) {
+async fn time_out(app: &Shared, mut job: Job) {
     let limit = app.cfg.job_timeout.as_secs();
-    let message = format!("the job took longer than its limit of {limit} s");
-    if fail_running(app, job, "timeout", message).await {
-        tracing::warn!(limit_s = limit, "job timed out");
-    }
-}
-
-/// Records a running job as failed from outside its thread; false if the
-/// store no longer had it running (or could not be written).
-async fn fail_running(app: &Shared, job: &Job, code: &str, message: String) -> bool {
-    let mut job = job.clone();
     job.state = JobState::Failed;
     job.finished_ms = Some(now_ms());
     job.progress = Progress::at("done", job.progress.fraction);
     job.error = Some(JobError {
-        code: code.into(),
-        message,
+        code: "timeout".into(),
+        message: format!("the job took longer than its limit of {limit} s"),
     });
     let store = app.jobs.clone();
     match tokio::task::spawn_blocking(move || store.update_running(&job)).await {
         Ok(Ok(true)) => {
+            tracing::warn!(limit_s = limit, "job timed out");
             app.metrics.finished(JobState::Failed);
             app.announce_finished();
-            true
         }
-        Ok(Ok(false)) => false,
-        Ok(Err(e)) => {
-            tracing::error!(error = %e, code, "cannot record the failure");
-            false
-        }
-        Err(e) => {
-            tracing::error!(error = %e, code, "failure task failed");
-            false
-        }
+        Ok(Ok(false)) => {}
+        Ok(Err(e)) => tracing::error!(error = %e, "cannot record the time-out"),
+        Err(e) => tracing::error!(error = %e, "time-out task failed"),
     }
 }
 
