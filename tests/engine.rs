@@ -257,14 +257,14 @@ fn chart_figures(rel: &str) -> Vec<ChartFigures> {
     let mut ids: Vec<usize> = roots.clone();
     ids.sort_unstable();
     ids.dedup();
-    let chart_of = |r: usize| ids.binary_search(&r).unwrap();
+    let chart: Vec<usize> = roots
+        .iter()
+        .map(|r| ids.binary_search(r).unwrap())
+        .collect();
     // Seam sides carry their triangle's UVs bit for bit; the group is not
     // needed to find the side's triangle among edges with these UVs.
     let by_uvs: HashMap<_, usize> = owner.iter().map(|(&(_, e), &t)| (e, t)).collect();
-    let side_chart = |uv: [[f64; 2]; 2]| {
-        let t = by_uvs[&uv_edge(uv[0], uv[1])];
-        chart_of(roots[t])
-    };
+    let side_chart = |uv: [[f64; 2]; 2]| chart[by_uvs[&uv_edge(uv[0], uv[1])]];
 
     let m = load(rel);
     let opts = ProcessOptions {
@@ -288,7 +288,7 @@ fn chart_figures(rel: &str) -> Vec<ChartFigures> {
     (0..ids.len())
         .map(|c| {
             let chart_tris: Vec<_> = (0..tris.len())
-                .filter(|&i| chart_of(roots[i]) == c)
+                .filter(|&i| chart[i] == c)
                 .map(|i| tris[i])
                 .collect();
             let inside = inside_mask(&grid, &chart_tris);
