@@ -1,6 +1,8 @@
 //! Per-stage timings and peak memory of the seam engine on the 2048² models.
 //!
-//! `cargo bench --bench erase` prints one row per (model, mode). Each row runs
+//! `cargo bench --bench erase` prints one row per (model, mode, seams): the
+//! seams judged (those painted apart left, the default) or all closed
+//! (`--erase-all`). Each row runs
 //! in a child process of its own, so "peak MB" (the kernel's high-water mark
 //! of resident memory, VmHWM) belongs to that run alone. Each row is the
 //! median of [`RUNS`] runs by erase time.
@@ -13,7 +15,7 @@ use seamstress::model::{self, LoadOptions};
 use seamstress::pipeline::{self, Format, Method, ProcessOptions};
 use seamstress::seam::erase::Mode;
 
-const MODELS: [&str; 2] = ["blub/blub.glb", "Fox/Fox.gltf"];
+const MODELS: [&str; 3] = ["blub/blub.glb", "Fox/Fox.gltf", "CesiumMan/CesiumMan.gltf"];
 /// Runs per row; the row shows the median one (this machine's speed varies by
 /// 10–20% from one run to the next).
 const RUNS: usize = 5;
@@ -34,7 +36,7 @@ fn peak_rss_mb() -> f64 {
 }
 
 /// Runs one model in this process and prints one tab-separated line.
-fn child(rel: &str, mode: Mode) {
+fn child(rel: &str, mode: Mode, erase_all: bool) {
     let t = Instant::now();
     let m = match model::load(&asset(rel), &LoadOptions::default()) {
         Ok(m) => m,
@@ -48,6 +50,7 @@ fn child(rel: &str, mode: Mode) {
         mode,
         method: Method::Erase,
         format: Format::Png,
+        erase_all,
         ..ProcessOptions::default()
     };
     let t = Instant::now();
@@ -61,7 +64,7 @@ fn child(rel: &str, mode: Mode) {
     let total_ms = t.elapsed().as_millis();
     let r = &out.report.textures[0];
     println!(
-        "OK\t{}\t{}\t{}\t{}\t{}\t{:.1}\t{}\t{:.3}\t{:.3}\t{:.2}",
+        "OK\t{}\t{}\t{}\t{}\t{}\t{:.1}\t{}\t{:.3}\t{:.3}\t{:.2}\t{:.3}\t{:.3}\t{:.1}",
         r.timings_ms.load,
         r.timings_ms.seams,
         r.timings_ms.erase,
@@ -72,6 +75,9 @@ fn child(rel: &str, mode: Mode) {
         r.input.seam_rms.unwrap_or(f64::NAN),
         r.erased.seam_rms.unwrap_or(f64::NAN),
         r.erased.psnr.unwrap_or(f64::NAN),
+        r.seams.closed.length_share,
+        r.erased.seam_rms_closed.unwrap_or(f64::NAN),
+        r.erased.worst_chart_psnr.unwrap_or(f64::NAN),
     );
 }
 
@@ -85,14 +91,15 @@ fn main() {
         } else {
             Mode::Local
         };
-        child(&args[i + 1], mode);
+        child(&args[i + 1], mode, args[i + 3] == "all");
         return;
     }
     let exe = std::env::current_exe().expect("own path");
     println!(
-        "{:<16} {:<6} {:>7} {:>8} {:>9} {:>9} {:>10} {:>7} {:>8} {:>9} {:>10} {:>8}",
+        "{:<16} {:<6} {:<6} {:>7} {:>8} {:>9} {:>9} {:>10} {:>7} {:>8} {:>9} {:>10} {:>8} {:>7} {:>10} {:>9}",
         "model",
         "mode",
+        "seams",
         "load ms",
         "seams ms",
         "erase ms",
@@ -102,15 +109,23 @@ fn main() {
         "peak MB",
         "input rms",
         "erased rms",
-        "psnr dB"
+        "psnr dB",
+        "closed",
+        "closed rms",
+        "worst dB"
     );
     for rel in MODELS {
-        for mode in ["local", "global"] {
+        for (mode, seams) in [
+            ("local", "judged"),
+            ("local", "all"),
+            ("global", "judged"),
+            ("global", "all"),
+        ] {
             let name = rel.rsplit('/').next().unwrap_or(rel);
             let mut runs = Vec::new();
             for _ in 0..RUNS {
                 let out = Command::new(&exe)
-                    .args(["--child", rel, mode])
+                    .args(["--child", rel, mode, seams])
                     .output()
                     .expect("child runs");
                 let text = String::from_utf8_lossy(&out.stdout);
@@ -119,9 +134,9 @@ fn main() {
                     .find(|l| l.starts_with("OK") || l.starts_with("ERR"))
                     .map(|l| l.split('\t').map(str::to_string).collect::<Vec<_>>());
                 match line {
-                    Some(f) if f[0] == "OK" && f.len() == 11 => runs.push(f),
+                    Some(f) if f[0] == "OK" && f.len() == 14 => runs.push(f),
                     other => {
-                        println!("{name:<16} {mode:<6} failed: {other:?}");
+                        println!("{name:<16} {mode:<6} {seams:<6} failed: {other:?}");
                         break;
                     }
                 }
@@ -133,12 +148,14 @@ fn main() {
             runs.sort_by_key(|f| f[3].parse::<u64>().unwrap_or(u64::MAX));
             let f = &runs[RUNS / 2];
             println!(
-                "{:<16} {:<6} {:>7} {:>8} {:>9} {:>9} {:>10} {:>7} {:>8} {:>9} {:>10} {:>8}",
-                name, mode, f[1], f[2], f[3], f[4], f[5], f[7], f[6], f[8], f[9], f[10]
+                "{:<16} {:<6} {:<6} {:>7} {:>8} {:>9} {:>9} {:>10} {:>7} {:>8} {:>9} {:>10} {:>8} {:>7} {:>10} {:>9}",
+                name, mode, seams, f[1], f[2], f[3], f[4], f[5], f[7], f[6], f[8], f[9], f[10], f[11], f[12], f[13]
             );
         }
     }
     println!("\nerase: seam erasure incl. the solve; the run with the median erase of {RUNS};");
-    println!("peak MB: VmHWM of that run's child process.");
+    println!("peak MB: VmHWM of that run's child process. seams: judged (painted apart left)");
+    println!("or all closed; closed: their share of the seam length; closed rms: erased");
+    println!("seam_rms over them; worst dB: the lowest PSNR of any UV chart.");
     println!("Goals (local mode, 2048²): erase < 1000 ms, peak < 1024 MB.");
 }

@@ -9,6 +9,7 @@ pub mod bc1;
 pub mod heap;
 pub mod mips;
 pub mod model;
+pub mod picture;
 pub mod pipeline;
 pub mod seam;
 pub mod service;

@@ -10,7 +10,9 @@ use clap::{Parser, Subcommand};
 
 use seamstress::bc1::Level;
 use seamstress::model::{self, LoadOptions};
-use seamstress::pipeline::{self, Format, Method, ProcessOptions, DEFAULT_SEAM_WEIGHT};
+use seamstress::pipeline::{
+    self, Format, Method, ProcessOptions, DEFAULT_SEAM_TOLERANCE, DEFAULT_SEAM_WEIGHT,
+};
 use seamstress::seam::erase::Mode;
 
 #[derive(Parser)]
@@ -74,6 +76,18 @@ struct ProcessArgs {
     /// Also process occlusion and metallic-roughness textures.
     #[arg(long)]
     extra_maps: bool,
+    /// Leave seams whose sides, as their own charts paint them, differ by
+    /// more than this many 8-bit levels (RMS along the edge): they are
+    /// painted apart on purpose, and closing them would repaint the art.
+    #[arg(long, value_name = "LEVELS", default_value_t = DEFAULT_SEAM_TOLERANCE)]
+    seam_tolerance: f64,
+    /// Close every seam, however differently its sides are painted.
+    #[arg(long)]
+    erase_all: bool,
+    /// Also write <name>.seams.png: the seams coloured by what was done to
+    /// them, with close-ups of the worst.
+    #[arg(long)]
+    pictures: bool,
 }
 
 fn main() -> ExitCode {
@@ -139,6 +153,12 @@ fn process(args: &ProcessArgs) -> Result<(), Failure> {
             args.seam_weight
         )));
     }
+    if !(args.seam_tolerance.is_finite() && args.seam_tolerance >= 0.0) {
+        return Err(Failure::BadInput(format!(
+            "--seam-tolerance must be a non-negative number of levels, not {}",
+            args.seam_tolerance
+        )));
+    }
     // Before the work, so that an unusable --out fails at once.
     if args.out.exists() && !args.out.is_dir() {
         return Err(Failure::BadInput(format!(
@@ -170,6 +190,9 @@ fn process(args: &ProcessArgs) -> Result<(), Failure> {
         seam_weight: args.seam_weight,
         mips: args.mips,
         dx10: args.dx10,
+        seam_tolerance: args.seam_tolerance,
+        erase_all: args.erase_all,
+        pictures: args.pictures,
     };
     let name = args
         .input

@@ -16,9 +16,13 @@ use crate::bc1::seam_aware::{optimise, Problem, SeamAwareOptions};
 use crate::bc1::{self, Block, Level};
 use crate::mips;
 use crate::model::{find_seams, Model, SeamSet, Skipped, Texture, TextureBinding};
+use crate::picture::{seams_png, SeamPicture};
+use crate::seam::charts::{ChartFidelity, Charts, HARM_PSNR_DB};
+use crate::seam::classify::{classify, ClassifyOptions, SeamVerdicts};
 use crate::seam::erase::{erase, EraseError, EraseOptions, EraseStats, Mode};
 use crate::seam::masking::{mask, MaskingOptions};
 use crate::seam::metric::seam_points_texel_length;
+use crate::seam::padding::pad_left_seams;
 use crate::seam::system::SolveError;
 use crate::seam::{colour_channels, psnr, SeamMetric, TexelClasses, TexelGrid};
 
@@ -47,6 +51,7 @@ pub enum Format {
 }
 
 pub use crate::bc1::seam_aware::DEFAULT_ALPHA as DEFAULT_SEAM_WEIGHT;
+pub use crate::seam::classify::DEFAULT_TOLERANCE as DEFAULT_SEAM_TOLERANCE;
 
 #[derive(Clone, Copy, Debug)]
 pub struct ProcessOptions {
@@ -58,6 +63,13 @@ pub struct ProcessOptions {
     pub seam_weight: f64,
     pub mips: bool,
     pub dx10: bool,
+    /// Seams whose sides, as their own charts paint them, differ by more
+    /// than this (8-bit levels, RMS along the edge) are left as painted.
+    pub seam_tolerance: f64,
+    /// Close every seam, however far apart its sides are painted.
+    pub erase_all: bool,
+    /// Draw `<name>.seams.png` for each texture.
+    pub pictures: bool,
 }
 
 impl Default for ProcessOptions {
@@ -71,6 +83,9 @@ impl Default for ProcessOptions {
             seam_weight: DEFAULT_SEAM_WEIGHT,
             mips: false,
             dx10: false,
+            seam_tolerance: DEFAULT_SEAM_TOLERANCE,
+            erase_all: false,
+            pictures: false,
         }
     }
 }
@@ -96,10 +111,42 @@ pub enum PipelineError {
 /// Seam and fidelity figures for one version of a texture.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
 pub struct Metrics {
-    /// Length-weighted RMS seam difference in 8-bit levels (`null` without seams).
+    /// Length-weighted RMS seam difference over every seam, in 8-bit levels
+    /// (`null` without seams).
     pub seam_rms: Option<f64>,
+    /// The same over the seams that were closed (`null` when none was).
+    pub seam_rms_closed: Option<f64>,
     /// RGB PSNR over inside texels against the input (`null` for the input itself, or if identical).
     pub psnr: Option<f64>,
+    /// The lowest PSNR of any UV chart against the input (`null` for the
+    /// input, or when no chart changed): one repainted chart shows here
+    /// when the texture's PSNR averages it away.
+    pub worst_chart_psnr: Option<f64>,
+    /// How many UV charts fall under 30 dB against the input.
+    pub charts_under_30db: Option<usize>,
+}
+
+/// How many seam edges, and what share of the seams' 3D length.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct SeamShare {
+    pub edges: usize,
+    pub length_share: f64,
+}
+
+/// What was done with the seams: which were closed and which left as painted.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct SeamSummary {
+    /// The jump (8-bit levels) up to which seams were closed; `null` with
+    /// `erase_all`, which closes every seam.
+    pub tolerance: Option<f64>,
+    pub closed: SeamShare,
+    pub left: SeamShare,
+    /// Of the seams left, those whose sides differ by more than 16 levels but
+    /// within the tolerance: left because closing them repainted a chart
+    /// under 30 dB.
+    pub spared: usize,
+    /// Gutter texels along the seams left, filled from their own chart.
+    pub padded_texels: usize,
 }
 
 #[derive(Clone, Debug, Default, PartialEq, Serialize)]
@@ -115,6 +162,9 @@ pub struct Timings {
 pub struct Files {
     pub dds: Option<String>,
     pub erased: String,
+    /// `<name>.seams.png`, when pictures were asked for.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub seams: Option<String>,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -124,6 +174,7 @@ pub struct TextureReport {
     pub width: usize,
     pub height: usize,
     pub seam_edges: usize,
+    pub seams: SeamSummary,
     pub input: Metrics,
     pub erased: Metrics,
     /// The regular BC1 encoding of the erased texture (mip level 0).
@@ -140,6 +191,9 @@ pub struct Report {
     pub input: String,
     pub textures: Vec<TextureReport>,
     pub skipped: Vec<Skipped>,
+    /// What an unattended run should not miss: a UV chart repainted below
+    /// 30 dB, say. Each line names its texture.
+    pub warnings: Vec<String>,
 }
 
 /// A named output file.
@@ -166,15 +220,18 @@ pub fn run(
 ) -> Result<Output, PipelineError> {
     let mut files = Vec::new();
     let mut textures = Vec::new();
+    let mut warnings = Vec::new();
     for binding in &model.bindings {
         let (report, mut out) = process_texture(binding, load_ms, opts)?;
         files.append(&mut out);
+        warnings.extend(harm_warning(&report, opts));
         textures.push(report);
     }
     let report = Report {
         input: input_name.to_string(),
         textures,
         skipped: model.skipped.clone(),
+        warnings,
     };
     Ok(Output { files, report })
 }
@@ -182,7 +239,15 @@ pub fn run(
 /// One mip level of one texture, seam-erased.
 struct ErasedLevel {
     grid: TexelGrid,
+    /// Every seam, as the metric measures them.
     seams: SeamSet,
+    /// The seams closed (with every silhouette): what erasure and seam-aware
+    /// encoding make agree.
+    closed: SeamSet,
+    verdicts: SeamVerdicts,
+    charts: Charts,
+    /// Gutter texels filled from their own chart along the seams left open.
+    padded: usize,
     classes: TexelClasses,
     /// The solver's output before rounding (the next mip level is filtered from it).
     float: Texture,
@@ -204,18 +269,93 @@ fn erase_level(
         wrap_s: b.wrap_s,
         wrap_t: b.wrap_t,
     };
+    let compared = colour_channels(tex.channels);
     let t = Instant::now();
     let seams = find_seams(&b.triangles, tex.width, tex.height);
-    let classes = TexelClasses::new(&grid, &b.triangles, &seams);
-    let seams_ms = t.elapsed().as_millis() as u64;
-
-    let t = Instant::now();
-    let (data, stats) = match opts.method {
-        Method::Erase => erase(
+    let charts = Charts::new(&grid, &b.triangles);
+    let mut verdicts = if opts.erase_all {
+        SeamVerdicts::all_closed(&seams)
+    } else {
+        classify(
             &grid,
             &tex.data,
             tex.channels,
+            compared,
             &seams,
+            &charts,
+            &ClassifyOptions {
+                tolerance: opts.seam_tolerance,
+                remove_chart_offsets: opts.mode == Mode::Global,
+            },
+        )
+    };
+    let seams_ms = t.elapsed().as_millis() as u64;
+
+    let t = Instant::now();
+    let mut solved = solve(b, &grid, tex, &seams, &verdicts.closed, &charts, opts)?;
+    if !opts.erase_all {
+        // The middle zone closes only where that repaints no chart.
+        let harmed = charts.harmed(&solved.data, &tex.data, tex.channels, compared);
+        let spared = verdicts.spare(&seams, &charts, &harmed);
+        if spared > 0 {
+            tracing::debug!(spared, "seams left to spare their charts");
+            solved = solve(b, &grid, tex, &seams, &verdicts.closed, &charts, opts)?;
+        }
+    }
+    let like = |data| Texture {
+        width: tex.width,
+        height: tex.height,
+        channels: tex.channels,
+        data,
+        encoding: tex.encoding,
+    };
+    let stored = like(quantized(&solved.data, tex.encoding.max_value()));
+    let float = like(solved.data);
+    Ok(ErasedLevel {
+        grid,
+        seams,
+        closed: solved.closed,
+        verdicts,
+        charts,
+        padded: solved.padded,
+        classes: solved.classes,
+        float,
+        stored,
+        stats: solved.stats,
+        seams_ms,
+        erase_ms: t.elapsed().as_millis() as u64,
+    })
+}
+
+/// One erasure of a level with the seams `closed` selects.
+struct Solved {
+    closed: SeamSet,
+    classes: TexelClasses,
+    padded: usize,
+    data: Vec<f32>,
+    stats: EraseStats,
+}
+
+/// Pads the gutter along the seams left, then makes the closed seams agree.
+fn solve(
+    b: &TextureBinding,
+    grid: &TexelGrid,
+    tex: &Texture,
+    seams: &SeamSet,
+    closed: &[bool],
+    charts: &Charts,
+    opts: &ProcessOptions,
+) -> Result<Solved, PipelineError> {
+    let selected = seams.select(closed);
+    let mut input = tex.data.clone();
+    let padded = pad_left_seams(grid, &mut input, tex.channels, seams, closed, charts);
+    let classes = TexelClasses::new(grid, &b.triangles, &selected);
+    let (data, stats) = match opts.method {
+        Method::Erase => erase(
+            grid,
+            &input,
+            tex.channels,
+            &selected,
             &classes,
             &EraseOptions::new(opts.mode),
         )
@@ -225,10 +365,10 @@ fn erase_level(
         })?,
         Method::Masking => {
             let out = mask(
-                &grid,
-                &tex.data,
+                grid,
+                &input,
                 tex.channels,
-                &seams,
+                &selected,
                 &classes,
                 &MaskingOptions::default(),
             )
@@ -239,24 +379,12 @@ fn erase_level(
             (out, EraseStats::default())
         }
     };
-    let like = |data| Texture {
-        width: tex.width,
-        height: tex.height,
-        channels: tex.channels,
-        data,
-        encoding: tex.encoding,
-    };
-    let stored = like(quantized(&data, tex.encoding.max_value()));
-    let float = like(data);
-    Ok(ErasedLevel {
-        grid,
-        seams,
+    Ok(Solved {
+        closed: selected,
         classes,
-        float,
-        stored,
+        padded,
+        data,
         stats,
-        seams_ms,
-        erase_ms: t.elapsed().as_millis() as u64,
     })
 }
 
@@ -314,8 +442,8 @@ fn encode_level(
     let encode_ms = t.elapsed().as_millis() as u64;
     let t = Instant::now();
     let mut shipped = regular.clone();
-    if opts.seam_aware && !level.seams.seams.is_empty() {
-        let points = seam_points_texel_length(&level.grid, &level.seams);
+    if opts.seam_aware && !level.closed.seams.is_empty() {
+        let points = seam_points_texel_length(&level.grid, &level.closed);
         let problem = Problem {
             width: w,
             height: h,
@@ -349,6 +477,99 @@ fn encode_level(
     })
 }
 
+/// The metric over every seam and over the closed ones, and the fidelity
+/// figures, for one texture's level 0.
+struct Measure<'a> {
+    all: SeamMetric,
+    closed: SeamMetric,
+    charts: &'a Charts,
+    inside: &'a [bool],
+    compared: usize,
+}
+
+impl Measure<'_> {
+    fn input(&self, data: &[f32], channels: usize) -> Metrics {
+        Metrics {
+            seam_rms: self.all.seam_rms(data, channels, self.compared),
+            seam_rms_closed: self.closed.seam_rms(data, channels, self.compared),
+            psnr: None,
+            worst_chart_psnr: None,
+            charts_under_30db: None,
+        }
+    }
+
+    fn against(&self, data: &[f32], channels: usize, reference: &[f32]) -> Metrics {
+        let ChartFidelity {
+            worst_psnr,
+            under_threshold,
+            ..
+        } = self
+            .charts
+            .fidelity(data, reference, channels, self.compared);
+        Metrics {
+            psnr: psnr(data, reference, channels, self.compared, self.inside),
+            worst_chart_psnr: worst_psnr,
+            charts_under_30db: Some(under_threshold),
+            ..self.input(data, channels)
+        }
+    }
+}
+
+fn seam_summary(level: &ErasedLevel, opts: &ProcessOptions) -> SeamSummary {
+    let total = level.seams.total_length();
+    let share = |closed: bool| {
+        let picked = level
+            .seams
+            .seams
+            .iter()
+            .zip(&level.verdicts.closed)
+            .filter(|(_, c)| **c == closed);
+        let (edges, length) = picked.fold((0, 0.0), |(n, l), (s, _)| (n + 1, l + s.length));
+        SeamShare {
+            edges,
+            length_share: if total > 0.0 { length / total } else { 0.0 },
+        }
+    };
+    SeamSummary {
+        tolerance: (!opts.erase_all).then_some(opts.seam_tolerance),
+        closed: share(true),
+        left: share(false),
+        spared: level.verdicts.spared,
+        padded_texels: level.padded,
+    }
+}
+
+/// The warning an unattended run must not miss: charts repainted below
+/// [`HARM_PSNR_DB`] by erasure or by the encoding the DDS holds.
+fn harm_warning(t: &TextureReport, opts: &ProcessOptions) -> Option<String> {
+    let versions = [
+        ("erased texture", Some(&t.erased)),
+        ("DDS", t.bc1_seam_aware.as_ref()),
+    ];
+    let (what, m) = versions
+        .into_iter()
+        .filter_map(|(what, m)| Some((what, m?)))
+        .find(|(_, m)| m.charts_under_30db.unwrap_or(0) > 0)?;
+    let (charts, psnr) = (m.charts_under_30db?, m.worst_chart_psnr?);
+    tracing::warn!(
+        texture = %t.name,
+        version = what,
+        charts_under_30db = charts,
+        worst_chart_psnr = psnr,
+        "UV charts changed below 30 dB"
+    );
+    let why = if opts.erase_all {
+        "; --erase-all closes seams whose sides are painted apart"
+    } else {
+        ""
+    };
+    Some(format!(
+        "texture {}: {charts} UV chart(s) under {HARM_PSNR_DB} dB in the {what} \
+         (worst {psnr:.1} dB){why}",
+        t.name
+    ))
+}
+
 fn process_texture(
     b: &TextureBinding,
     load_ms: u64,
@@ -357,20 +578,25 @@ fn process_texture(
     let tex = &b.texture;
     let span = tracing::info_span!("texture", image = b.image, name = %b.name);
     let _guard = span.enter();
+    let encode_err = |message: String| PipelineError::Encode {
+        name: b.name.clone(),
+        message,
+    };
 
     let level0 = erase_level(b, tex, opts)?;
     tracing::info!(
         seam_edges = level0.seams.seams.len(),
+        closed = level0.verdicts.closed_count(),
         unknowns = level0.stats.unknowns,
         erase_ms = level0.erase_ms,
         "seams erased"
     );
-    let metric = SeamMetric::new(&level0.grid, &level0.seams);
-    let compared = colour_channels(tex.channels);
-    let inside = &level0.classes.inside;
-    let measure = |data: &[f32], channels: usize, reference: &[f32]| Metrics {
-        seam_rms: metric.seam_rms(data, channels, compared),
-        psnr: psnr(data, reference, channels, compared, inside),
+    let measure = Measure {
+        all: SeamMetric::new(&level0.grid, &level0.seams),
+        closed: SeamMetric::new(&level0.grid, &level0.closed),
+        charts: &level0.charts,
+        inside: &level0.classes.inside,
+        compared: colour_channels(tex.channels),
     };
 
     let mut files = Vec::new();
@@ -378,10 +604,7 @@ fn process_texture(
     let png = level0
         .stored
         .encode_png()
-        .map_err(|e| PipelineError::Encode {
-            name: b.name.clone(),
-            message: e.to_string(),
-        })?;
+        .map_err(|e| encode_err(e.to_string()))?;
     files.push(OutputFile {
         name: erased_name.clone(),
         bytes: png,
@@ -393,16 +616,15 @@ fn process_texture(
         width: tex.width,
         height: tex.height,
         seam_edges: level0.seams.seams.len(),
-        input: Metrics {
-            seam_rms: metric.seam_rms(&tex.data, tex.channels, compared),
-            psnr: None,
-        },
-        erased: measure(&level0.stored.data, tex.channels, &tex.data),
+        seams: seam_summary(&level0, opts),
+        input: measure.input(&tex.data, tex.channels),
+        erased: measure.against(&level0.stored.data, tex.channels, &tex.data),
         bc1: None,
         bc1_seam_aware: None,
         files: Files {
             dds: None,
             erased: erased_name,
+            seams: None,
         },
         timings_ms: Timings {
             load: load_ms,
@@ -414,18 +636,19 @@ fn process_texture(
         solver: level0.stats,
     };
 
+    let input_rgb = rgb(tex);
+    let erased_rgb = rgb(&level0.stored);
+    let mut decoded = None;
     if opts.format == Format::Dds {
-        let input_rgb = rgb(tex);
         let enc = encode_level(b, &level0, opts)?;
         let decode = |blocks: &[Block]| {
-            bc1::decode_image(blocks, tex.width, tex.height).map_err(|e| PipelineError::Encode {
-                name: b.name.clone(),
-                message: e.to_string(),
-            })
+            bc1::decode_image(blocks, tex.width, tex.height).map_err(|e| encode_err(e.to_string()))
         };
-        report.bc1 = Some(measure(&decode(&enc.regular)?, 3, &input_rgb));
+        let regular = decode(&enc.regular)?;
+        let shipped = decode(&enc.shipped)?;
+        report.bc1 = Some(measure.against(&regular, 3, &input_rgb));
         if opts.seam_aware {
-            report.bc1_seam_aware = Some(measure(&decode(&enc.shipped)?, 3, &input_rgb));
+            report.bc1_seam_aware = Some(measure.against(&shipped, 3, &input_rgb));
         }
         report.timings_ms.encode = enc.encode_ms;
         report.timings_ms.seam_aware = enc.seam_aware_ms;
@@ -434,42 +657,73 @@ fn process_texture(
             seam_aware_ms = enc.seam_aware_ms,
             "level 0 encoded"
         );
-
-        let mut levels = vec![MipLevel {
-            width: tex.width as u32,
-            height: tex.height as u32,
-            blocks: enc.shipped,
-        }];
-        if opts.mips {
-            let mut above = level0.float;
-            for k in 1..mips::chain_len(tex.width, tex.height) {
-                let filtered = mips::downsample(&above, b.wrap_s, b.wrap_t);
-                let level = erase_level(b, &filtered, opts)?;
-                let enc = encode_level(b, &level, opts)?;
-                tracing::debug!(level = k, width = level.grid.width, "mip level encoded");
-                levels.push(MipLevel {
-                    width: level.grid.width as u32,
-                    height: level.grid.height as u32,
-                    blocks: enc.shipped,
-                });
-                above = level.float;
-            }
-        }
-        let header = if opts.dx10 {
-            DdsHeaderKind::Dx10 { srgb: b.srgb }
-        } else {
-            DdsHeaderKind::Legacy
-        };
-        let dds = write_dds(&levels, header).map_err(|e| PipelineError::Encode {
-            name: b.name.clone(),
-            message: e.to_string(),
-        })?;
         let dds_name = format!("{}.dds", b.name);
         files.push(OutputFile {
             name: dds_name.clone(),
-            bytes: dds,
+            bytes: write_levels(b, &level0, enc.shipped, opts)?,
         });
         report.files.dds = Some(dds_name);
+        decoded = Some((regular, shipped));
+    }
+    if opts.pictures {
+        let (regular, shipped) = decoded
+            .as_ref()
+            .map_or((&erased_rgb, &erased_rgb), |(r, s)| (r, s));
+        let picture = SeamPicture {
+            grid: &level0.grid,
+            input: &input_rgb,
+            erased: &erased_rgb,
+            bc1: regular,
+            seam_aware: shipped,
+            seams: &level0.seams,
+            closed: &level0.verdicts.closed,
+        };
+        let name = format!("{}.seams.png", b.name);
+        files.push(OutputFile {
+            name: name.clone(),
+            bytes: seams_png(&picture).map_err(|e| encode_err(e.to_string()))?,
+        });
+        report.files.seams = Some(name);
     }
     Ok((report, files))
+}
+
+/// The DDS: level 0 as encoded, then (with `mips`) every smaller level
+/// filtered from the one above, erased and encoded on its own.
+fn write_levels(
+    b: &TextureBinding,
+    level0: &ErasedLevel,
+    blocks0: Vec<Block>,
+    opts: &ProcessOptions,
+) -> Result<Vec<u8>, PipelineError> {
+    let tex = &b.texture;
+    let mut levels = vec![MipLevel {
+        width: tex.width as u32,
+        height: tex.height as u32,
+        blocks: blocks0,
+    }];
+    if opts.mips {
+        let mut above = level0.float.clone();
+        for k in 1..mips::chain_len(tex.width, tex.height) {
+            let filtered = mips::downsample(&above, b.wrap_s, b.wrap_t);
+            let level = erase_level(b, &filtered, opts)?;
+            let enc = encode_level(b, &level, opts)?;
+            tracing::debug!(level = k, width = level.grid.width, "mip level encoded");
+            levels.push(MipLevel {
+                width: level.grid.width as u32,
+                height: level.grid.height as u32,
+                blocks: enc.shipped,
+            });
+            above = level.float;
+        }
+    }
+    let header = if opts.dx10 {
+        DdsHeaderKind::Dx10 { srgb: b.srgb }
+    } else {
+        DdsHeaderKind::Legacy
+    };
+    write_dds(&levels, header).map_err(|e| PipelineError::Encode {
+        name: b.name.clone(),
+        message: e.to_string(),
+    })
 }

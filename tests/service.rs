@@ -199,12 +199,14 @@ fn without_timings(mut report: Value) -> Value {
     report
 }
 
+/// `process` as the service runs it (which always draws the seams picture).
 fn cli_process(model: &Path, out: &Path) {
     let o = Command::new(env!("CARGO_BIN_EXE_seamstress"))
         .arg("process")
         .arg(model)
         .arg("--out")
         .arg(out)
+        .arg("--pictures")
         .output()
         .unwrap();
     assert!(

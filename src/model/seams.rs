@@ -24,6 +24,9 @@ pub struct SeamEdge {
     pub b_opposite: [f64; 2],
     /// 3D length of the edge.
     pub length: f64,
+    /// Index (in the triangles given to [`find_seams`]) of the triangle that
+    /// holds each half-edge: `a`'s, then `b`'s.
+    pub triangles: [u32; 2],
 }
 
 /// A UV boundary that is not a seam: a mesh boundary or a non-manifold edge.
@@ -45,6 +48,20 @@ impl SeamSet {
     pub fn total_length(&self) -> f64 {
         self.seams.iter().map(|s| s.length).sum()
     }
+
+    /// The seams whose entry in `keep` is true, with every silhouette.
+    pub fn select(&self, keep: &[bool]) -> SeamSet {
+        SeamSet {
+            seams: self
+                .seams
+                .iter()
+                .zip(keep)
+                .filter(|(_, k)| **k)
+                .map(|(s, _)| *s)
+                .collect(),
+            silhouettes: self.silhouettes.clone(),
+        }
+    }
 }
 
 struct HalfEdge {
@@ -52,6 +69,7 @@ struct HalfEdge {
     uv: [[f64; 2]; 2],
     opposite: [f64; 2],
     length: f64,
+    triangle: u32,
 }
 
 /// Finds the seams of `triangles` for a `width`×`height` texture.
@@ -63,7 +81,7 @@ pub fn find_seams(triangles: &[UvTriangle], width: usize, height: usize) -> Seam
     let mut edge_slot: HashMap<(u32, u32), usize> = HashMap::new();
     let mut edges: Vec<Vec<HalfEdge>> = Vec::new();
 
-    for t in triangles {
+    for (ti, t) in triangles.iter().enumerate() {
         let ids = t.positions.map(|p| {
             let key = (t.group, p.map(f32::to_bits));
             let next = weld.len() as u32;
@@ -81,6 +99,7 @@ pub fn find_seams(triangles: &[UvTriangle], width: usize, height: usize) -> Seam
                 uv: [t.uvs[lo], t.uvs[hi]],
                 opposite: t.uvs[o],
                 length,
+                triangle: ti as u32,
             };
             let key = (ids[lo], ids[hi]);
             let slot = *edge_slot.entry(key).or_insert_with(|| {
@@ -109,6 +128,7 @@ pub fn find_seams(triangles: &[UvTriangle], width: usize, height: usize) -> Seam
                         a_opposite: e1.opposite,
                         b_opposite: e2.opposite,
                         length: e1.length,
+                        triangles: [e1.triangle, e2.triangle],
                     });
                 }
             }

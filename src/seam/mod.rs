@@ -2,6 +2,8 @@
 //! masking baseline, all on one texel grid.
 
 pub mod assemble;
+pub mod charts;
+pub mod classify;
 pub mod coarse;
 pub mod erase;
 pub mod far_field;
@@ -9,6 +11,7 @@ pub mod grid;
 pub mod masking;
 pub mod metric;
 pub mod multigrid;
+pub mod padding;
 pub mod quadrature;
 pub mod sparse;
 pub mod stencil;

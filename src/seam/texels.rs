@@ -43,32 +43,38 @@ impl TexelClasses {
 /// Marks every texel whose centre lies in or on a UV triangle, wrap-aware.
 pub fn inside_mask(grid: &TexelGrid, triangles: &[UvTriangle]) -> Vec<bool> {
     let mut mask = vec![false; grid.len()];
+    for t in triangles {
+        for_each_texel_inside(grid, t, |i| mask[i as usize] = true);
+    }
+    mask
+}
+
+/// Calls `f` with the (wrapped) index of every texel whose centre lies in or
+/// on `t`; degenerate triangles hold none.
+pub fn for_each_texel_inside(grid: &TexelGrid, t: &UvTriangle, mut f: impl FnMut(u32)) {
     // Centres exactly on a shared edge must count for one of the two triangles.
     const EPS: f64 = 1e-9;
-    for t in triangles {
-        let q = t.uvs.map(|uv| grid.to_texel(uv));
-        let (a, b, c) = (q[0], q[1], q[2]);
-        let d = (b[1] - c[1]) * (a[0] - c[0]) + (c[0] - b[0]) * (a[1] - c[1]);
-        if d.abs() < 1e-12 {
-            continue;
-        }
-        let x0 = a[0].min(b[0]).min(c[0]).floor() as i64;
-        let x1 = a[0].max(b[0]).max(c[0]).ceil() as i64;
-        let y0 = a[1].min(b[1]).min(c[1]).floor() as i64;
-        let y1 = a[1].max(b[1]).max(c[1]).ceil() as i64;
-        // A triangle spanning more than the image marks every texel anyway.
-        let x1 = x1.min(x0 + 2 * grid.width as i64);
-        let y1 = y1.min(y0 + 2 * grid.height as i64);
-        for y in y0..=y1 {
-            for x in x0..=x1 {
-                let (px, py) = (x as f64, y as f64);
-                let l0 = ((b[1] - c[1]) * (px - c[0]) + (c[0] - b[0]) * (py - c[1])) / d;
-                let l1 = ((c[1] - a[1]) * (px - c[0]) + (a[0] - c[0]) * (py - c[1])) / d;
-                if l0 >= -EPS && l1 >= -EPS && 1.0 - l0 - l1 >= -EPS {
-                    mask[grid.index(x, y) as usize] = true;
-                }
+    let q = t.uvs.map(|uv| grid.to_texel(uv));
+    let (a, b, c) = (q[0], q[1], q[2]);
+    let d = (b[1] - c[1]) * (a[0] - c[0]) + (c[0] - b[0]) * (a[1] - c[1]);
+    if d.abs() < 1e-12 {
+        return;
+    }
+    let x0 = a[0].min(b[0]).min(c[0]).floor() as i64;
+    let x1 = a[0].max(b[0]).max(c[0]).ceil() as i64;
+    let y0 = a[1].min(b[1]).min(c[1]).floor() as i64;
+    let y1 = a[1].max(b[1]).max(c[1]).ceil() as i64;
+    // A triangle spanning more than the image marks every texel anyway.
+    let x1 = x1.min(x0 + 2 * grid.width as i64);
+    let y1 = y1.min(y0 + 2 * grid.height as i64);
+    for y in y0..=y1 {
+        for x in x0..=x1 {
+            let (px, py) = (x as f64, y as f64);
+            let l0 = ((b[1] - c[1]) * (px - c[0]) + (c[0] - b[0]) * (py - c[1])) / d;
+            let l1 = ((c[1] - a[1]) * (px - c[0]) + (a[0] - c[0]) * (py - c[1])) / d;
+            if l0 >= -EPS && l1 >= -EPS && 1.0 - l0 - l1 >= -EPS {
+                f(grid.index(x, y));
             }
         }
     }
-    mask
 }

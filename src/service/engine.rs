@@ -143,7 +143,7 @@ pub fn run(
         .iter()
         .filter_map(|t| Some((t.image, t.files.dds.clone()?)))
         .collect();
-    let mut warnings = Vec::new();
+    let mut warnings = output.report.warnings.clone();
     rewritten_model(bundle, &dds, &mut files, &mut warnings);
     timings.rewrite = Some(t.elapsed().as_millis() as u64);
     Ok(Produced {
@@ -183,6 +183,7 @@ fn process(
             Some(m) => {
                 m.files.extend(out.files);
                 m.report.textures.extend(out.report.textures);
+                m.report.warnings.extend(out.report.warnings);
             }
         }
     }

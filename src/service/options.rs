@@ -50,6 +50,8 @@ pub struct JobOptions {
     pub mips: Option<bool>,
     pub dx10: Option<bool>,
     pub extra_maps: Option<bool>,
+    pub seam_tolerance: Option<f64>,
+    pub erase_all: Option<bool>,
 }
 
 /// Every option decided: stored with the job, shown to the client, and part
@@ -65,6 +67,15 @@ pub struct ResolvedOptions {
     pub mips: bool,
     pub dx10: bool,
     pub extra_maps: bool,
+    /// Absent in jobs stored before seams were judged: they keep the default.
+    #[serde(default = "default_seam_tolerance")]
+    pub seam_tolerance: f64,
+    #[serde(default)]
+    pub erase_all: bool,
+}
+
+fn default_seam_tolerance() -> f64 {
+    crate::pipeline::DEFAULT_SEAM_TOLERANCE
 }
 
 /// Query parameters that are options (the rest of the query is not).
@@ -78,6 +89,8 @@ pub const QUERY_OPTIONS: &[&str] = &[
     "mips",
     "dx10",
     "extra_maps",
+    "seam_tolerance",
+    "erase_all",
 ];
 
 impl JobOptions {
@@ -93,6 +106,8 @@ impl JobOptions {
             mips: over.mips.or(self.mips),
             dx10: over.dx10.or(self.dx10),
             extra_maps: over.extra_maps.or(self.extra_maps),
+            seam_tolerance: over.seam_tolerance.or(self.seam_tolerance),
+            erase_all: over.erase_all.or(self.erase_all),
         }
     }
 
@@ -118,6 +133,14 @@ impl JobOptions {
             "mips" => self.mips = Some(boolean(key, value)?),
             "dx10" => self.dx10 = Some(boolean(key, value)?),
             "extra_maps" => self.extra_maps = Some(boolean(key, value)?),
+            "erase_all" => self.erase_all = Some(boolean(key, value)?),
+            "seam_tolerance" => {
+                self.seam_tolerance = Some(
+                    value
+                        .parse()
+                        .map_err(|_| format!("seam_tolerance: {value:?} is not a number"))?,
+                )
+            }
             "seam_weight" => {
                 self.seam_weight = Some(
                     value
@@ -137,6 +160,12 @@ impl JobOptions {
         if !(seam_weight.is_finite() && seam_weight >= 0.0) {
             return Err(format!(
                 "seam_weight must be a non-negative number, not {seam_weight}"
+            ));
+        }
+        let seam_tolerance = self.seam_tolerance.unwrap_or(d.seam_tolerance);
+        if !(seam_tolerance.is_finite() && seam_tolerance >= 0.0) {
+            return Err(format!(
+                "seam_tolerance must be a non-negative number of levels, not {seam_tolerance}"
             ));
         }
         Ok(ResolvedOptions {
@@ -162,6 +191,8 @@ impl JobOptions {
             mips: self.mips.unwrap_or(d.mips),
             dx10: self.dx10.unwrap_or(d.dx10),
             extra_maps: self.extra_maps.unwrap_or(false),
+            seam_tolerance,
+            erase_all: self.erase_all.unwrap_or(d.erase_all),
         })
     }
 }
@@ -191,6 +222,11 @@ pub fn process_options(o: &ResolvedOptions) -> ProcessOptions {
         seam_weight: o.seam_weight,
         mips: o.mips,
         dx10: o.dx10,
+        seam_tolerance: o.seam_tolerance,
+        erase_all: o.erase_all,
+        // People look at pictures rather than read numbers; the service
+        // always draws them.
+        pictures: true,
     }
 }
 

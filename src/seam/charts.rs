@@ -1,0 +1,217 @@
+//! UV charts: the connected pieces of an atlas.
+//!
+//! Triangles that share a UV edge (the same two UV points, whichever mesh
+//! they come from) belong to one chart; a seam is where one 3D edge lands
+//! in two charts, or twice in one. Each inside texel is labelled with a
+//! chart that covers it, so that a seam side's colour can be read as its own
+//! chart paints it, without the gutter between charts.
+
+use std::collections::HashMap;
+
+use super::grid::TexelGrid;
+use super::texels::for_each_texel_inside;
+use crate::model::UvTriangle;
+
+/// UVs are compared after rounding to this many steps per unit: far finer
+/// than any texel, coarse enough that the same vertex written twice (by two
+/// primitives, or after a texture transform) joins.
+const UV_STEPS: f64 = (1u64 << 20) as f64;
+
+/// The charts of the triangles that sample one texture.
+#[derive(Clone, Debug)]
+pub struct Charts {
+    /// Chart of each triangle, numbered `0..count` in order of first appearance.
+    pub of_triangle: Vec<u32>,
+    /// Chart of each texel, [`Charts::NONE`] where no triangle covers it. Where
+    /// charts overlap (mirrored halves sharing UVs), the last triangle wins.
+    pub of_texel: Vec<u32>,
+    pub count: usize,
+}
+
+impl Charts {
+    pub const NONE: u32 = u32::MAX;
+
+    pub fn new(grid: &TexelGrid, triangles: &[UvTriangle]) -> Self {
+        let mut parent: Vec<u32> = (0..triangles.len() as u32).collect();
+        let mut first_with_edge: HashMap<[[i64; 2]; 2], u32> = HashMap::new();
+        for (ti, t) in triangles.iter().enumerate() {
+            let q = t.uvs.map(|uv| uv.map(|x| (x * UV_STEPS).round() as i64));
+            for k in 0..3 {
+                let (p, r) = (q[k], q[(k + 1) % 3]);
+                let key = if p <= r { [p, r] } else { [r, p] };
+                match first_with_edge.get(&key) {
+                    Some(&other) => union(&mut parent, ti as u32, other),
+                    None => {
+                        first_with_edge.insert(key, ti as u32);
+                    }
+                }
+            }
+        }
+        let mut number: HashMap<u32, u32> = HashMap::new();
+        let of_triangle: Vec<u32> = (0..triangles.len() as u32)
+            .map(|t| {
+                let root = find(&mut parent, t);
+                let next = number.len() as u32;
+                *number.entry(root).or_insert(next)
+            })
+            .collect();
+        let mut of_texel = vec![Self::NONE; grid.len()];
+        for (t, &chart) in triangles.iter().zip(&of_triangle) {
+            for_each_texel_inside(grid, t, |i| of_texel[i as usize] = chart);
+        }
+        Charts {
+            of_triangle,
+            of_texel,
+            count: number.len(),
+        }
+    }
+
+    /// The chart of texel `i`, if any triangle covers it.
+    #[inline]
+    pub fn texel(&self, i: u32) -> Option<u32> {
+        let c = self.of_texel[i as usize];
+        (c != Self::NONE).then_some(c)
+    }
+}
+
+fn find(parent: &mut [u32], mut i: u32) -> u32 {
+    while parent[i as usize] != i {
+        let up = parent[parent[i as usize] as usize];
+        parent[i as usize] = up;
+        i = up;
+    }
+    i
+}
+
+fn union(parent: &mut [u32], a: u32, b: u32) {
+    let (ra, rb) = (find(parent, a), find(parent, b));
+    // The smaller root stays, so the partition does not depend on the order
+    // in which edges are met.
+    if ra != rb {
+        let (lo, hi) = (ra.min(rb), ra.max(rb));
+        parent[hi as usize] = lo;
+    }
+}
+
+/// Per-chart PSNR of `image` against `reference` over each chart's texels.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ChartFidelity {
+    /// Charts large enough to judge (at least [`MIN_CHART_TEXELS`]).
+    pub charts: usize,
+    /// The lowest PSNR among them, in dB; `None` when none changed.
+    pub worst_psnr: Option<f64>,
+    /// How many fall under [`HARM_PSNR_DB`].
+    pub under_threshold: usize,
+}
+
+/// Charts with fewer texels are too small to judge by PSNR: a sliver of a
+/// few texels along a seam always changes, and is not art anyone sees.
+pub const MIN_CHART_TEXELS: usize = 64;
+
+/// Below this PSNR a chart has visibly been repainted: BC1 alone keeps
+/// charts of real art above it (35–45 dB), and closing seams whose sides
+/// agree costs a few dB at most.
+pub const HARM_PSNR_DB: f64 = 30.0;
+
+impl Charts {
+    /// PSNR (dB) of each chart over the first `compared` channels against
+    /// `reference`: `None` for charts under [`MIN_CHART_TEXELS`], infinite
+    /// for charts that did not change.
+    pub fn psnr_per_chart(
+        &self,
+        image: &[f32],
+        reference: &[f32],
+        channels: usize,
+        compared: usize,
+    ) -> Vec<Option<f64>> {
+        let mut sum = vec![0.0f64; self.count];
+        let mut texels = vec![0usize; self.count];
+        for (t, &c) in self.of_texel.iter().enumerate() {
+            if c == Self::NONE {
+                continue;
+            }
+            for k in 0..compared {
+                let d = f64::from(image[t * channels + k]) - f64::from(reference[t * channels + k]);
+                sum[c as usize] += d * d;
+            }
+            texels[c as usize] += 1;
+        }
+        sum.iter()
+            .zip(&texels)
+            .map(|(s, n)| {
+                (*n >= MIN_CHART_TEXELS).then(|| 10.0 * ((n * compared) as f64 / s).log10())
+            })
+            .collect()
+    }
+
+    /// The charts that `image` changed below [`HARM_PSNR_DB`].
+    pub fn harmed(
+        &self,
+        image: &[f32],
+        reference: &[f32],
+        channels: usize,
+        compared: usize,
+    ) -> Vec<bool> {
+        self.psnr_per_chart(image, reference, channels, compared)
+            .into_iter()
+            .map(|p| p.is_some_and(|p| p < HARM_PSNR_DB))
+            .collect()
+    }
+
+    /// How much each chart was changed, summed up, so that one repainted
+    /// chart is not averaged away.
+    pub fn fidelity(
+        &self,
+        image: &[f32],
+        reference: &[f32],
+        channels: usize,
+        compared: usize,
+    ) -> ChartFidelity {
+        let judged: Vec<f64> = self
+            .psnr_per_chart(image, reference, channels, compared)
+            .into_iter()
+            .flatten()
+            .collect();
+        let changed = judged.iter().copied().filter(|p| p.is_finite());
+        ChartFidelity {
+            charts: judged.len(),
+            worst_psnr: changed.clone().reduce(f64::min),
+            under_threshold: changed.filter(|p| *p < HARM_PSNR_DB).count(),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::Wrap;
+
+    fn tri(uvs: [[f64; 2]; 3]) -> UvTriangle {
+        UvTriangle {
+            group: 0,
+            positions: [[0.0; 3]; 3],
+            uvs,
+        }
+    }
+
+    #[test]
+    fn triangles_sharing_a_uv_edge_form_one_chart() {
+        let grid = TexelGrid {
+            width: 16,
+            height: 16,
+            wrap_s: Wrap::ClampToEdge,
+            wrap_t: Wrap::ClampToEdge,
+        };
+        let t = [
+            tri([[0.0, 0.0], [0.4, 0.0], [0.0, 0.4]]),
+            tri([[0.6, 0.6], [1.0, 0.6], [0.6, 1.0]]),
+            tri([[0.4, 0.0], [0.4, 0.4], [0.0, 0.4]]),
+        ];
+        let c = Charts::new(&grid, &t);
+        assert_eq!(c.count, 2);
+        assert_eq!(c.of_triangle, vec![0, 1, 0]);
+        assert_eq!(c.texel(grid.index(2, 2)), Some(0));
+        assert_eq!(c.texel(grid.index(12, 12)), Some(1));
+        assert_eq!(c.texel(grid.index(15, 0)), None);
+    }
+}

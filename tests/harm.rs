@@ -1,0 +1,246 @@
+//! Do no harm: seams whose sides agree are closed as before, seams painted
+//! apart are left as painted, and the report says which is which.
+
+use std::path::PathBuf;
+
+use seamstress::model::{self, find_seams, LoadOptions, Model, Texture};
+use seamstress::pipeline::{self, Output, ProcessOptions};
+use seamstress::seam::charts::Charts;
+use seamstress::seam::classify::{classify, ClassifyOptions};
+use seamstress::seam::{colour_channels, SeamMetric, TexelGrid};
+
+fn load(rel: &str) -> Model {
+    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    let path = match rel.strip_prefix("repo:") {
+        Some(own) => root.join("tests/assets").join(own),
+        None => root.join("../shared/assets").join(rel),
+    };
+    model::load(&path, &LoadOptions::default())
+        .unwrap_or_else(|e| panic!("{rel} does not load: {e}"))
+}
+
+fn run(rel: &str, opts: &ProcessOptions) -> Output {
+    pipeline::run(&load(rel), rel, 0, opts).unwrap_or_else(|e| panic!("{rel}: {e}"))
+}
+
+fn file<'a>(out: &'a Output, name: &str) -> &'a [u8] {
+    &out.files
+        .iter()
+        .find(|f| f.name == name)
+        .unwrap_or_else(|| panic!("no output file {name}"))
+        .bytes
+}
+
+/// The contract's own yardstick, independent of the tolerance the run used:
+/// `seam_rms` over the edges whose sides, as their own charts paint them in
+/// the input, are within 16 levels, measured on the erased PNG and on the
+/// decoded DDS.
+fn agreeing_seam_rms(rel: &str, out: &Output) -> (f64, f64) {
+    let m = load(rel);
+    let b = &m.bindings[0];
+    let t = &b.texture;
+    let grid = TexelGrid::of(b);
+    let seams = find_seams(&b.triangles, t.width, t.height);
+    let charts = Charts::new(&grid, &b.triangles);
+    let cc = colour_channels(t.channels);
+    let verdicts = classify(
+        &grid,
+        &t.data,
+        t.channels,
+        cc,
+        &seams,
+        &charts,
+        &ClassifyOptions {
+            tolerance: 16.0,
+            remove_chart_offsets: false,
+        },
+    );
+    let metric = SeamMetric::new(&grid, &seams.select(&verdicts.closed));
+    let erased = Texture::decode(file(out, &format!("{}.erased.png", b.name)), u32::MAX).unwrap();
+    let dds = seamstress::bc1::dds::read_dds(file(out, &format!("{}.dds", b.name))).unwrap();
+    let decoded = seamstress::bc1::decode_image(&dds.levels[0].blocks, t.width, t.height).unwrap();
+    (
+        metric.seam_rms(&erased.data, t.channels, cc).unwrap(),
+        metric.seam_rms(&decoded, 3, 3).unwrap(),
+    )
+}
+
+#[test]
+fn fox_keeps_its_painted_chart_and_closes_the_rest() {
+    let out = run("Fox/Fox.gltf", &ProcessOptions::default());
+    let t = &out.report.textures[0];
+    eprintln!("Fox: {:?}\n{:?}", t.seams, t.erased);
+    // The chart painted another colour is left: its seams jump 70–125 levels.
+    assert!(t.seams.left.edges > 0 && t.seams.left.length_share < 0.15);
+    let worst = t
+        .erased
+        .worst_chart_psnr
+        .expect("erasure changed something");
+    assert!(worst >= 40.0, "Fox: worst chart {worst} dB");
+    let (erased, shipped) = agreeing_seam_rms("Fox/Fox.gltf", &out);
+    assert!(
+        erased <= 0.3,
+        "Fox: agreeing seams at {erased} after erasure"
+    );
+    assert!(
+        shipped <= 0.5,
+        "Fox: agreeing seams at {shipped} in the DDS"
+    );
+    assert!(out.report.warnings.is_empty(), "{:?}", out.report.warnings);
+}
+
+#[test]
+fn erase_all_repaints_the_fox_chart_and_says_so() {
+    let opts = ProcessOptions {
+        erase_all: true,
+        ..ProcessOptions::default()
+    };
+    let out = run("Fox/Fox.gltf", &opts);
+    let t = &out.report.textures[0];
+    assert_eq!(t.seams.left.edges, 0);
+    assert_eq!(t.seams.tolerance, None);
+    assert!(t.erased.charts_under_30db.unwrap() >= 1, "{:?}", t.erased);
+    assert_eq!(out.report.warnings.len(), 1, "{:?}", out.report.warnings);
+    assert!(out.report.warnings[0].contains(&t.name));
+}
+
+#[test]
+fn cesium_man_keeps_every_chart_above_30_db() {
+    let out = run("CesiumMan/CesiumMan.gltf", &ProcessOptions::default());
+    let t = &out.report.textures[0];
+    eprintln!(
+        "CesiumMan: {:?}\n{:?}\n{:?}",
+        t.seams, t.erased, t.bc1_seam_aware
+    );
+    assert!(t.seams.left.edges > 0);
+    for (what, m) in [
+        ("erased", Some(&t.erased)),
+        ("DDS", t.bc1_seam_aware.as_ref()),
+    ] {
+        let m = m.unwrap();
+        assert_eq!(m.charts_under_30db, Some(0), "CesiumMan {what}: {m:?}");
+    }
+    let (erased, shipped) = agreeing_seam_rms("CesiumMan/CesiumMan.gltf", &out);
+    assert!(erased <= 0.3, "CesiumMan: agreeing seams at {erased}");
+    // Seam-aware BC1 keeps the agreeing seams as closed as when every seam
+    // was closed (JPEG noise keeps both near 0.6).
+    let all = run(
+        "CesiumMan/CesiumMan.gltf",
+        &ProcessOptions {
+            erase_all: true,
+            ..ProcessOptions::default()
+        },
+    );
+    let (_, before) = agreeing_seam_rms("CesiumMan/CesiumMan.gltf", &all);
+    eprintln!("CesiumMan: agreeing seams in the DDS at {shipped}, {before} with every seam closed");
+    assert!(
+        shipped <= before + 0.02,
+        "CesiumMan: agreeing seams at {shipped} in the DDS, {before} with every seam closed"
+    );
+    assert!(out.report.warnings.is_empty(), "{:?}", out.report.warnings);
+}
+
+/// Every WaterBottle seam agrees: judging them changes nothing.
+#[test]
+fn water_bottle_is_processed_as_before() {
+    let judged = run("WaterBottle/WaterBottle.gltf", &ProcessOptions::default());
+    let all = run(
+        "WaterBottle/WaterBottle.gltf",
+        &ProcessOptions {
+            erase_all: true,
+            ..ProcessOptions::default()
+        },
+    );
+    for t in &judged.report.textures {
+        assert_eq!(t.seams.left.edges, 0, "{}: {:?}", t.name, t.seams);
+        assert_eq!(t.seams.padded_texels, 0);
+    }
+    assert_eq!(judged.files.len(), all.files.len());
+    for (a, b) in judged.files.iter().zip(&all.files) {
+        assert_eq!(a.name, b.name);
+        assert!(a.bytes == b.bytes, "{} differs", a.name);
+    }
+}
+
+/// Padding: every gutter texel that a left seam's footprint reads takes its
+/// own chart's colour, so the rendered edge shows no gutter.
+#[test]
+fn left_seams_read_only_their_own_charts() {
+    let rel = "CesiumMan/CesiumMan.gltf";
+    let out = run(rel, &ProcessOptions::default());
+    let t = &out.report.textures[0];
+    assert!(t.seams.padded_texels > 0, "{:?}", t.seams);
+    let m = load(rel);
+    let b = &m.bindings[0];
+    let grid = TexelGrid::of(b);
+    let charts = Charts::new(&grid, &b.triangles);
+    let erased = Texture::decode(file(&out, &format!("{}.erased.png", b.name)), u32::MAX).unwrap();
+    let input = &b.texture;
+    // Outside every chart, texels change only where some seam reads them.
+    let mut changed_outside = 0;
+    for (i, c) in charts.of_texel.iter().enumerate() {
+        let k = i * input.channels;
+        if *c == Charts::NONE && erased.data[k..k + 3] != input.data[k..k + 3] {
+            changed_outside += 1;
+        }
+    }
+    assert!(changed_outside >= t.seams.padded_texels / 2);
+}
+
+#[test]
+fn pictures_are_drawn_when_asked() {
+    let opts = ProcessOptions {
+        pictures: true,
+        ..ProcessOptions::default()
+    };
+    let out = run("cube/cube_gradient_128.glb", &opts);
+    let t = &out.report.textures[0];
+    let name = t.files.seams.as_deref().expect("a seams picture");
+    let png = image::load_from_memory(file(&out, name)).expect("the picture is a PNG");
+    assert!(png.width() >= 128 && png.height() >= 128);
+    let plain = run("cube/cube_gradient_128.glb", &ProcessOptions::default());
+    assert!(plain.report.textures[0].files.seams.is_none());
+    assert_eq!(plain.files.len() + 1, out.files.len());
+}
+
+/// A hand-painted atlas (white panels on black, cut along the paint): the
+/// seams between 16 and 48 levels that would repaint a chart are spared,
+/// the rest close as well as ever, and no chart falls under 30 dB, where
+/// closing every seam takes the worst to 16 dB.
+#[test]
+fn hand_painted_controller_keeps_its_panels() {
+    let rel = "repo:oculus-touch-v3/oculus-touch-v3-left.glb";
+    let out = run(rel, &ProcessOptions::default());
+    let t = &out.report.textures[0];
+    eprintln!(
+        "controller: {:?}\n{:?}\n{:?}",
+        t.seams, t.erased, t.bc1_seam_aware
+    );
+    assert!(t.seams.spared > 0, "{:?}", t.seams);
+    let psnr = t.erased.psnr.unwrap();
+    assert!(psnr >= 40.0, "controller: inside psnr {psnr}");
+    for m in [&t.erased, t.bc1_seam_aware.as_ref().unwrap()] {
+        assert_eq!(m.charts_under_30db, Some(0), "{m:?}");
+    }
+    let (erased, shipped) = agreeing_seam_rms(rel, &out);
+    assert!(erased <= 0.3, "controller: agreeing seams at {erased}");
+    assert!(
+        shipped <= 0.5,
+        "controller: agreeing seams at {shipped} in the DDS"
+    );
+    assert!(out.report.warnings.is_empty(), "{:?}", out.report.warnings);
+
+    let all = run(
+        rel,
+        &ProcessOptions {
+            erase_all: true,
+            ..ProcessOptions::default()
+        },
+    );
+    let worst = all.report.textures[0].erased.worst_chart_psnr.unwrap();
+    assert!(
+        worst < 20.0,
+        "closing every seam repaints a panel: {worst} dB"
+    );
+    assert!(!all.report.warnings.is_empty());
+}
