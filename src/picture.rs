@@ -1,17 +1,17 @@
 //! The seams picture (`<name>.seams.png`): what seam erasure and BC1 did to
 //! one texture's seams, for a person to check at a glance.
 //!
-//! Layout, top to bottom, on a dark background with a [`MARGIN`] all round:
+//! Layout, top to bottom, on a dark background with a `MARGIN` all round:
 //!
 //! 1. **Overview panel**: the seam-aware texture dimmed to a third, scaled
-//!    so that its longer side is at most [`MAX_PANEL`] pixels (and, for small
-//!    textures, enlarged by an integer factor to at least [`MIN_PANEL`]), with
+//!    so that its longer side is at most `MAX_PANEL` pixels (and, for small
+//!    textures, enlarged by an integer factor to at least `MIN_PANEL`), with
 //!    every seam half-edge drawn over it. Hue says the class (closed or left
 //!    as painted); brightness says the edge's residual after BC1.
 //! 2. **Legend**: two rows of swatches, closed then left, from residual 0
-//!    (dim) to [`FULL_BRIGHT_LEVELS`] or more (bright).
+//!    (dim) to `FULL_BRIGHT_LEVELS` or more (bright).
 //! 3. **Close-up strip** (only when some edge is closed): one row per worst
-//!    closed edge (up to [`STRIP_ROWS`]); each row holds, for `input`,
+//!    closed edge (up to `STRIP_ROWS`); each row holds, for `input`,
 //!    `erased`, `bc1` and `seam_aware` in turn, a tile around half-edge `a`
 //!    and a tile around half-edge `b`, at full brightness.
 

@@ -12,13 +12,13 @@
 //! levels, between the colours its two sides' own charts paint along it.
 //! A side's colour at a point is the bilinear sample with the taps that fall
 //! outside its chart dropped and the rest reweighted (failing any, the
-//! nearest texel of the chart within [`NEAREST_RADIUS`]). Gutter texels never
+//! nearest texel of the chart within `NEAREST_RADIUS`). Gutter texels never
 //! count: an atlas with a black gutter shows 40–60-level jumps in its raw
 //! bilinear samples, and its seams must still close.
 //!
-//! The rule has three zones. Edges whose jump is within [`ALWAYS_CLOSE`]
+//! The rule has three zones. Edges whose jump is within `ALWAYS_CLOSE`
 //! (16 levels) are closed: their sides are meant to agree. Edges beyond the
-//! tolerance ([`DEFAULT_TOLERANCE`], 48 levels, `--seam-tolerance`) are left
+//! tolerance (`DEFAULT_TOLERANCE`, 48 levels, `--seam-tolerance`) are left
 //! as painted. Between the two, an edge is closed unless closing it repaints
 //! a chart on either side: after the erasure, every chart whose PSNR fell
 //! under [`HARM_PSNR_DB`](super::charts::HARM_PSNR_DB) has its edges of this

@@ -33,7 +33,7 @@ struct Claim {
 /// many texels were filled.
 ///
 /// Each value is the inverse-square-distance mean of the chart's texels
-/// within [`REACH`], read from the input before any texel is filled, so the
+/// within `REACH`, read from the input before any texel is filled, so the
 /// result does not depend on the order of the seams. A gutter texel that two
 /// left seams read is filled from the chart nearer to it (the lower chart
 /// number on a tie).
