@@ -11,7 +11,7 @@ use clap::{Parser, Subcommand};
 use seamstress::bc1::Level;
 use seamstress::model::{self, LoadOptions};
 use seamstress::pipeline::{
-    self, Format, Method, ProcessOptions, DEFAULT_SEAM_TOLERANCE, DEFAULT_SEAM_WEIGHT,
+    self, Format, Method, ProcessOptions, Target, DEFAULT_SEAM_TOLERANCE, DEFAULT_SEAM_WEIGHT,
 };
 use seamstress::seam::erase::Mode;
 
@@ -84,6 +84,11 @@ struct ProcessArgs {
     /// Close every seam, however differently its sides are painted.
     #[arg(long)]
     erase_all: bool,
+    /// The GPU decoders whose palette rounding the seam-aware encoding keeps
+    /// the seams closed under: ideal (the float palette), nvidia, amd, or
+    /// robust (all three at once: one file for any GPU).
+    #[arg(long, value_parser = parse_target, default_value = "robust")]
+    decoder: Target,
     /// Also write <name>.seams.png: the seams coloured by what was done to
     /// them, with close-ups of the worst.
     #[arg(long)]
@@ -119,6 +124,12 @@ fn main() -> ExitCode {
             }
         },
     }
+}
+
+/// `--decoder`: the same words as the HTTP option.
+fn parse_target(s: &str) -> Result<Target, String> {
+    serde_json::from_value(serde_json::Value::String(s.to_string()))
+        .map_err(|_| format!("{s:?} is not one of ideal, nvidia, amd, robust"))
 }
 
 fn init_logging(format: LogFormat, default_level: &str) {
@@ -193,6 +204,7 @@ fn process(args: &ProcessArgs) -> Result<(), Failure> {
         seam_tolerance: args.seam_tolerance,
         erase_all: args.erase_all,
         pictures: args.pictures,
+        decoder: args.decoder,
     };
     let name = args
         .input

@@ -6,13 +6,16 @@
 //! named byte buffers, which the CLI writes into a folder and the service
 //! into its file store, so both serve identical bytes.
 
+use std::collections::BTreeMap;
 use std::time::Instant;
 
 use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::bc1::dds::{write_dds, DdsHeaderKind, MipLevel};
+pub use crate::bc1::seam_aware::Target;
 use crate::bc1::seam_aware::{optimise, Problem, SeamAwareOptions};
+use crate::bc1::Decoder;
 use crate::bc1::{self, Block, Level};
 use crate::mips;
 use crate::model::{find_seams, Model, SeamSet, Skipped, Texture, TextureBinding};
@@ -70,6 +73,8 @@ pub struct ProcessOptions {
     pub erase_all: bool,
     /// Draw `<name>.seams.png` for each texture.
     pub pictures: bool,
+    /// The GPU decoders the seam-aware encoding keeps the seams closed under.
+    pub decoder: Target,
 }
 
 impl Default for ProcessOptions {
@@ -86,6 +91,7 @@ impl Default for ProcessOptions {
             seam_tolerance: DEFAULT_SEAM_TOLERANCE,
             erase_all: false,
             pictures: false,
+            decoder: Target::Robust,
         }
     }
 }
@@ -109,7 +115,7 @@ pub enum PipelineError {
 }
 
 /// Seam and fidelity figures for one version of a texture.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct Metrics {
     /// Length-weighted RMS seam difference over every seam, in 8-bit levels
     /// (`null` without seams).
@@ -124,6 +130,21 @@ pub struct Metrics {
     pub worst_chart_psnr: Option<f64>,
     /// How many UV charts fall under 30 dB against the input.
     pub charts_under_30db: Option<usize>,
+    /// For BC1 encodings: the figures as each GPU decoder rounds the
+    /// palette (the fields above are the `ideal` decoder's).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub decoders: Option<BTreeMap<&'static str, DecoderMetrics>>,
+}
+
+/// A BC1 encoding's figures under one decoder.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct DecoderMetrics {
+    pub seam_rms: Option<f64>,
+    pub seam_rms_closed: Option<f64>,
+    /// Against the input, as [`Metrics::psnr`].
+    pub psnr: Option<f64>,
+    /// Against the erased texture, the one BC1 was given: the encoding's own cost.
+    pub encoding_psnr: Option<f64>,
 }
 
 /// How many seam edges, and what share of the seams' 3D length.
@@ -181,6 +202,8 @@ pub struct TextureReport {
     pub bc1: Option<Metrics>,
     /// What the DDS holds (mip level 0), when seam-aware encoding is on.
     pub bc1_seam_aware: Option<Metrics>,
+    /// The decoders the DDS's seam-aware encoding was made for.
+    pub bc1_target: Option<Target>,
     pub files: Files,
     pub timings_ms: Timings,
     pub solver: EraseStats,
@@ -454,6 +477,7 @@ fn encode_level(
         };
         let sa_opts = SeamAwareOptions {
             alpha: opts.seam_weight,
+            target: opts.decoder,
             ..SeamAwareOptions::default()
         };
         let stats =
@@ -495,7 +519,31 @@ impl Measure<'_> {
             psnr: None,
             worst_chart_psnr: None,
             charts_under_30db: None,
+            decoders: None,
         }
+    }
+
+    /// An encoding's figures under every decoder; `decode` decodes it with one.
+    fn per_decoder(
+        &self,
+        decode: impl Fn(Decoder) -> Result<Vec<f32>, PipelineError>,
+        input: &[f32],
+        erased: &[f32],
+    ) -> Result<BTreeMap<&'static str, DecoderMetrics>, PipelineError> {
+        let mut out = BTreeMap::new();
+        for d in Decoder::ALL {
+            let data = decode(d)?;
+            out.insert(
+                d.name(),
+                DecoderMetrics {
+                    seam_rms: self.all.seam_rms(&data, 3, self.compared),
+                    seam_rms_closed: self.closed.seam_rms(&data, 3, self.compared),
+                    psnr: psnr(&data, input, 3, self.compared, self.inside),
+                    encoding_psnr: psnr(&data, erased, 3, self.compared, self.inside),
+                },
+            );
+        }
+        Ok(out)
     }
 
     fn against(&self, data: &[f32], channels: usize, reference: &[f32]) -> Metrics {
@@ -621,6 +669,7 @@ fn process_texture(
         erased: measure.against(&level0.stored.data, tex.channels, &tex.data),
         bc1: None,
         bc1_seam_aware: None,
+        bc1_target: None,
         files: Files {
             dds: None,
             erased: erased_name,
@@ -641,14 +690,22 @@ fn process_texture(
     let mut decoded = None;
     if opts.format == Format::Dds {
         let enc = encode_level(b, &level0, opts)?;
-        let decode = |blocks: &[Block]| {
-            bc1::decode_image(blocks, tex.width, tex.height).map_err(|e| encode_err(e.to_string()))
+        let decode = |blocks: &[Block], d: Decoder| {
+            bc1::decode_image_with(blocks, tex.width, tex.height, d)
+                .map_err(|e| encode_err(e.to_string()))
         };
-        let regular = decode(&enc.regular)?;
-        let shipped = decode(&enc.shipped)?;
-        report.bc1 = Some(measure.against(&regular, 3, &input_rgb));
+        let regular = decode(&enc.regular, Decoder::Ideal)?;
+        let shipped = decode(&enc.shipped, Decoder::Ideal)?;
+        let mut bc1 = measure.against(&regular, 3, &input_rgb);
+        bc1.decoders =
+            Some(measure.per_decoder(|d| decode(&enc.regular, d), &input_rgb, &erased_rgb)?);
+        report.bc1 = Some(bc1);
         if opts.seam_aware {
-            report.bc1_seam_aware = Some(measure.against(&shipped, 3, &input_rgb));
+            let mut sa = measure.against(&shipped, 3, &input_rgb);
+            sa.decoders =
+                Some(measure.per_decoder(|d| decode(&enc.shipped, d), &input_rgb, &erased_rgb)?);
+            report.bc1_seam_aware = Some(sa);
+            report.bc1_target = Some(opts.decoder);
         }
         report.timings_ms.encode = enc.encode_ms;
         report.timings_ms.seam_aware = enc.seam_aware_ms;

@@ -128,6 +128,41 @@ fn reports_agree_with_the_independent_evaluator() {
     }
 }
 
+/// The evaluator decodes the DDS with each GPU's palette rounding and
+/// measures what the report says for that decoder.
+#[test]
+fn per_decoder_figures_agree_with_the_independent_evaluator() {
+    if !common::PYTHON.available() {
+        return;
+    }
+    for rel in ["Duck/Duck.gltf", "cube/cube_gradient_1024.glb"] {
+        let model = shared().join("assets").join(rel);
+        let out = scratch(&format!("decoders-{}", rel.replace('/', "_")));
+        let report = process(&model, &out);
+        let t = &report["textures"][0];
+        assert_eq!(t["bc1_target"], "robust");
+        let dds = out.join(t["files"]["dds"].as_str().unwrap());
+        for d in ["ideal", "nvidia", "amd"] {
+            let o = Command::new("python3")
+                .arg(shared().join("tools/seam_eval.py"))
+                .args([model.as_os_str(), dds.as_os_str()])
+                .args(["--decoder", d])
+                .output()
+                .expect("python3 runs");
+            assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+            let theirs: Value = serde_json::from_slice(&o.stdout).unwrap();
+            let ours = &t["bc1_seam_aware"]["decoders"][d];
+            close(
+                &ours["seam_rms"],
+                &theirs["seam_rms"],
+                &format!("{rel} {d} seam_rms"),
+            );
+            close(&ours["psnr"], &theirs["psnr"], &format!("{rel} {d} psnr"));
+        }
+        let _ = std::fs::remove_dir_all(&out);
+    }
+}
+
 /// The evaluator's own judgement of which seams should agree (sides within
 /// 16 levels as their charts paint them) and its PSNR per UV chart confirm
 /// what the report says: the agreeing seams close, no chart is repainted.

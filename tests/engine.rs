@@ -146,58 +146,35 @@ fn assert_first_band_holds(rel: &str, r: &pipeline::Report) {
 }
 
 /// Seam-aware BC1 must cut the regular encoding's seam_rms (over the seams
-/// closed) by 2.5× or more, mip level 0, at a PSNR cost of at most
-/// [`SEAM_AWARE_PSNR_COST`]. The cost is measured against the erased
-/// texture, the one BC1 compresses: against the input, the erasure's own
-/// change would hide it.
+/// closed) to 0.4× or less under every GPU decoder, at a PSNR cost of at
+/// most 0.15 dB under each, mip level 0. The cost is measured against the
+/// erased texture, the one BC1 compresses: against the input, the erasure's
+/// own change would hide it. Where the regular encoding already leaves the
+/// seams within [`NOISE_FLOOR`] levels, there is nothing left to cut.
 fn assert_seam_aware_gain(rel: &str, out: &pipeline::Output) {
-    // Measured today: 0.19 dB on Fox and cube_gradient_1024, 0.00 on blub.
-    const SEAM_AWARE_PSNR_COST: f64 = 0.25;
-    use seamstress::model::Texture;
-    use seamstress::seam::texels::inside_mask;
+    /// Far below one 8-bit level: blub's erased texture itself sits at 0.009.
+    const NOISE_FLOOR: f64 = 0.05;
     let t = &out.report.textures[0];
-    let bc1 = t.bc1.expect("regular BC1 measured");
-    let sa = t.bc1_seam_aware.expect("seam-aware BC1 measured");
-    let (b, s) = (bc1.seam_rms_closed.unwrap(), sa.seam_rms_closed.unwrap());
-    assert!(
-        s <= 0.4 * b,
-        "{rel}: seam-aware seam_rms {s} vs regular {b}"
+    let regular = t.bc1.as_ref().expect("regular BC1 measured");
+    let shipped = t.bc1_seam_aware.as_ref().expect("seam-aware BC1 measured");
+    let (regular, shipped) = (
+        regular.decoders.as_ref().expect("per decoder"),
+        shipped.decoders.as_ref().expect("per decoder"),
     );
-    let file = |name: &str| {
-        &out.files
-            .iter()
-            .find(|f| f.name == name)
-            .unwrap_or_else(|| panic!("{rel}: no {name}"))
-            .bytes
-    };
-    let erased = Texture::decode(file(&t.files.erased), u32::MAX).unwrap();
-    let (w, h) = (t.width, t.height);
-    let erased_rgb: Vec<f32> = erased
-        .data
-        .chunks(erased.channels)
-        .flat_map(|c| {
-            if c.len() < 3 {
-                [c[0]; 3]
-            } else {
-                [c[0], c[1], c[2]]
-            }
-        })
-        .collect();
-    let regular =
-        seamstress::bc1::encode_image(&erased_rgb, w, h, 3, seamstress::bc1::Level::Default)
-            .unwrap();
-    let regular = seamstress::bc1::decode_image(&regular, w, h).unwrap();
-    let dds = seamstress::bc1::dds::read_dds(file(t.files.dds.as_deref().unwrap())).unwrap();
-    let shipped = seamstress::bc1::decode_image(&dds.levels[0].blocks, w, h).unwrap();
-    let (b, _, _) = first_texture(rel);
-    let inside = inside_mask(&TexelGrid::of(&b), &b.triangles);
-    let bp = seamstress::seam::psnr(&regular, &erased_rgb, 3, 3, &inside).unwrap();
-    let sp = seamstress::seam::psnr(&shipped, &erased_rgb, 3, 3, &inside).unwrap();
-    eprintln!("{rel}: seam-aware psnr {sp:.3} vs regular {bp:.3} against the erased texture");
-    assert!(
-        sp >= bp - SEAM_AWARE_PSNR_COST,
-        "{rel}: seam-aware psnr {sp} vs regular {bp} against the erased texture"
-    );
+    for d in ["ideal", "nvidia", "amd"] {
+        let (r, s) = (&regular[d], &shipped[d]);
+        let (rb, sb) = (r.seam_rms_closed.unwrap(), s.seam_rms_closed.unwrap());
+        let (rp, sp) = (r.encoding_psnr.unwrap(), s.encoding_psnr.unwrap());
+        eprintln!("{rel} {d}: seam_rms {sb:.3} vs regular {rb:.3}; psnr {sp:.3} vs {rp:.3}");
+        assert!(
+            sb <= 0.4 * rb || rb <= NOISE_FLOOR,
+            "{rel} {d}: seam-aware seam_rms {sb} vs regular {rb}"
+        );
+        assert!(
+            sp >= rp - 0.15,
+            "{rel} {d}: seam-aware psnr {sp} vs regular {rp} against the erased texture"
+        );
+    }
 }
 
 #[test]
@@ -423,6 +400,13 @@ fn erasure_keeps_charts_whose_sides_roughly_agree() {
             texels(&disagree) * 20 < texels(&agree),
             "{rel}: {charts:#?}"
         );
+    }
+}
+
+#[test]
+fn seam_aware_keeps_duck_and_cesium_man_closed_under_every_decoder() {
+    for rel in ["Duck/Duck.gltf", "CesiumMan/CesiumMan.gltf"] {
+        assert_seam_aware_gain(rel, &run_output(rel, ProcessOptions::default()));
     }
 }
 

@@ -1,6 +1,8 @@
 //! One BC1 block: two RGB565 endpoints and sixteen 2-bit indices, and the
 //! decoder every metric in the crate relies on (SPEC §5).
 
+use super::decoder::Decoder;
+
 /// 5-bit channel values expanded to 8 bits by bit replication.
 pub(crate) const EXPAND5: [u8; 32] = {
     let mut t = [0u8; 32];
@@ -120,6 +122,21 @@ impl Block {
     /// the value set that [`Block::decode`] returns.
     pub fn palette(&self) -> [[f32; 3]; 4] {
         self.palette255().map(|c| c.map(|v| v / 255.0))
+    }
+
+    /// The palette in \[0, 1\] as `decoder` rounds it.
+    pub fn palette_with(&self, decoder: Decoder) -> [[f32; 3]; 4] {
+        let (a, b) = (unpack565(self.c0), unpack565(self.c1));
+        let (a, b) = ([a.0, a.1, a.2], [b.0, b.1, b.2]);
+        let four = self.c0 > self.c1;
+        let per: [[f32; 4]; 3] = std::array::from_fn(|ch| decoder.palette(four, ch, a[ch], b[ch]));
+        std::array::from_fn(|i| std::array::from_fn(|ch| per[ch][i] / 255.0))
+    }
+
+    /// The sixteen texels in \[0, 1\], row-major, as `decoder` decodes them.
+    pub fn decode_with(&self, decoder: Decoder) -> [[f32; 3]; 16] {
+        let p = self.palette_with(decoder);
+        std::array::from_fn(|k| p[self.index(k) as usize])
     }
 
     /// The sixteen texels in \[0, 1\], row-major.

@@ -11,6 +11,7 @@
 
 mod block;
 pub mod dds;
+pub mod decoder;
 mod encode;
 mod fast;
 pub mod seam_aware;
@@ -21,6 +22,7 @@ use std::str::FromStr;
 use rayon::prelude::*;
 
 pub use block::{expand565, pack565, unpack565, Block};
+pub use decoder::Decoder;
 
 /// Encoder effort. `Default` is the pipeline's default.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
@@ -155,8 +157,18 @@ pub fn encode_image(
 }
 
 /// Decodes row-major blocks to an RGB image of `width`×`height` texels
-/// (3 f32 per texel in \[0, 1\], padding dropped).
+/// (3 f32 per texel in \[0, 1\], padding dropped) with the float palette.
 pub fn decode_image(blocks: &[Block], width: usize, height: usize) -> Result<Vec<f32>, Bc1Error> {
+    decode_image_with(blocks, width, height, Decoder::Ideal)
+}
+
+/// [`decode_image`] as `decoder` rounds the palette.
+pub fn decode_image_with(
+    blocks: &[Block],
+    width: usize,
+    height: usize,
+    decoder: Decoder,
+) -> Result<Vec<f32>, Bc1Error> {
     if width == 0 || height == 0 {
         return Err(Bc1Error::Empty { width, height });
     }
@@ -175,7 +187,7 @@ pub fn decode_image(blocks: &[Block], width: usize, height: usize) -> Result<Vec
         .for_each(|(rows, brow)| {
             let rows_here = rows.len() / (width * 3);
             for (bx, b) in brow.iter().enumerate() {
-                let d = b.decode();
+                let d = b.decode_with(decoder);
                 for j in 0..rows_here {
                     for i in 0..4 {
                         let x = bx * 4 + i;

@@ -4,7 +4,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::bc1::Level;
-use crate::pipeline::{Format, Method, ProcessOptions};
+use crate::pipeline::{Format, Method, ProcessOptions, Target};
 use crate::seam::erase::Mode;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -52,6 +52,7 @@ pub struct JobOptions {
     pub extra_maps: Option<bool>,
     pub seam_tolerance: Option<f64>,
     pub erase_all: Option<bool>,
+    pub decoder: Option<Target>,
 }
 
 /// Every option decided: stored with the job, shown to the client, and part
@@ -72,6 +73,9 @@ pub struct ResolvedOptions {
     pub seam_tolerance: f64,
     #[serde(default)]
     pub erase_all: bool,
+    /// Absent in jobs stored before decoders were targeted: the default.
+    #[serde(default)]
+    pub decoder: Target,
 }
 
 fn default_seam_tolerance() -> f64 {
@@ -91,6 +95,7 @@ pub const QUERY_OPTIONS: &[&str] = &[
     "extra_maps",
     "seam_tolerance",
     "erase_all",
+    "decoder",
 ];
 
 impl JobOptions {
@@ -108,6 +113,7 @@ impl JobOptions {
             extra_maps: over.extra_maps.or(self.extra_maps),
             seam_tolerance: over.seam_tolerance.or(self.seam_tolerance),
             erase_all: over.erase_all.or(self.erase_all),
+            decoder: over.decoder.or(self.decoder),
         }
     }
 
@@ -134,6 +140,7 @@ impl JobOptions {
             "dx10" => self.dx10 = Some(boolean(key, value)?),
             "extra_maps" => self.extra_maps = Some(boolean(key, value)?),
             "erase_all" => self.erase_all = Some(boolean(key, value)?),
+            "decoder" => self.decoder = Some(word(key, value)?),
             "seam_tolerance" => {
                 self.seam_tolerance = Some(
                     value
@@ -193,6 +200,7 @@ impl JobOptions {
             extra_maps: self.extra_maps.unwrap_or(false),
             seam_tolerance,
             erase_all: self.erase_all.unwrap_or(d.erase_all),
+            decoder: self.decoder.unwrap_or(d.decoder),
         })
     }
 }
@@ -224,6 +232,7 @@ pub fn process_options(o: &ResolvedOptions) -> ProcessOptions {
         dx10: o.dx10,
         seam_tolerance: o.seam_tolerance,
         erase_all: o.erase_all,
+        decoder: o.decoder,
         // People look at pictures rather than read numbers; the service
         // always draws them.
         pictures: true,

@@ -1,0 +1,144 @@
+//! BC1 decoders as GPUs implement them.
+//!
+//! BC1 fixes how endpoints expand (565 → 888 by bit replication) but not how
+//! the two interpolated palette entries are rounded. The float palette of
+//! SPEC §5 (`ideal`) is what the metric has always assumed; NVIDIA's texture
+//! units round with integer formulas (measured on an H200: every line of
+//! `../shared/decoders/nvidia_bc1_table.txt` is reproduced below, and in
+//! four-colour mode green lands up to 5.3 levels off the float palette);
+//! AMD's use other formulas again (published with rgbcx, not measured here).
+//! A seam tuned to a fraction of a level under one decoder can open by whole
+//! levels under another, so the seam-aware encoder scores its candidates
+//! under the decoders it targets.
+//!
+//! The decode is per channel: a palette entry of one channel depends only on
+//! that channel's two endpoint fields and on the block's mode.
+
+use serde::{Deserialize, Serialize};
+
+/// How the interpolated palette entries are rounded.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Decoder {
+    /// The float palette: (2a+b)/3, (a+2b)/3; (a+b)/2 (D3D10, SPEC §5).
+    Ideal,
+    /// NVIDIA's texture units (measured).
+    Nvidia,
+    /// AMD's (rgbcx's published formulas).
+    Amd,
+}
+
+impl Decoder {
+    pub const ALL: [Decoder; 3] = [Decoder::Ideal, Decoder::Nvidia, Decoder::Amd];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Decoder::Ideal => "ideal",
+            Decoder::Nvidia => "nvidia",
+            Decoder::Amd => "amd",
+        }
+    }
+
+    /// The four palette values (8-bit scale, 0–255; fractional for `ideal`)
+    /// of channel `ch` (0 red, 1 green, 2 blue) with endpoint fields `x0`,
+    /// `x1` (5 or 6 bits). `four_colour` is the block's mode (c0 > c1);
+    /// in three-colour mode entry 3 is black.
+    pub fn palette(self, four_colour: bool, ch: usize, x0: u8, x1: u8) -> [f32; 4] {
+        let (a, b) = (expand(ch, x0), expand(ch, x1));
+        let (e2, e3) = if four_colour {
+            (self.third(ch, x0, x1, a, b), self.third(ch, x1, x0, b, a))
+        } else {
+            (self.half(ch, x0, x1, a, b), 0.0)
+        };
+        [f32::from(a), f32::from(b), e2, e3]
+    }
+
+    /// Entry 2 of four-colour mode: two thirds of `a`, one third of `b`.
+    fn third(self, ch: usize, x0: u8, x1: u8, a: u8, b: u8) -> f32 {
+        let (x0, x1, a, b) = (u32::from(x0), u32::from(x1), i32::from(a), i32::from(b));
+        match self {
+            Decoder::Ideal => (2 * a + b) as f32 / 3.0,
+            Decoder::Nvidia if ch == 1 => nvidia_green(a, b, 80),
+            Decoder::Nvidia => (((2 * x0 + x1) * 22) / 8) as f32,
+            Decoder::Amd => ((43 * a + 21 * b + 32) >> 6) as f32,
+        }
+    }
+
+    /// Entry 2 of three-colour mode: the mean of the endpoints.
+    fn half(self, ch: usize, x0: u8, x1: u8, a: u8, b: u8) -> f32 {
+        let (x0, x1, a, b) = (u32::from(x0), u32::from(x1), i32::from(a), i32::from(b));
+        match self {
+            Decoder::Ideal => (a + b) as f32 / 2.0,
+            Decoder::Nvidia if ch == 1 => nvidia_green(a, b, 128),
+            Decoder::Nvidia => (((x0 + x1) * 33) / 8) as f32,
+            Decoder::Amd => ((a + b + 1) >> 1) as f32,
+        }
+    }
+}
+
+/// NVIDIA's green: (256·a + t(d/4) + 128 + w·d) / 256 with d = b − a on the
+/// 8-bit expansions, t truncating toward zero (w = 80 for a third, 128 for
+/// a half). The numerator is never negative.
+fn nvidia_green(a: i32, b: i32, w: i32) -> f32 {
+    let d = b - a;
+    ((256 * a + d / 4 + 128 + w * d) / 256) as f32
+}
+
+/// 5- or 6-bit field → 8 bits by bit replication.
+fn expand(ch: usize, x: u8) -> u8 {
+    if ch == 1 {
+        (x << 2) | (x >> 4)
+    } else {
+        (x << 3) | (x >> 2)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Every line of the table read from an NVIDIA H200's texture unit.
+    #[test]
+    fn nvidia_reproduces_the_measured_table() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../shared/decoders/nvidia_bc1_table.txt");
+        let table =
+            std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+        let mut lines = 0;
+        for line in table
+            .lines()
+            .filter(|l| !l.starts_with('#') && !l.is_empty())
+        {
+            let f: Vec<u32> = line
+                .split_whitespace()
+                .map(|x| x.parse().unwrap())
+                .collect();
+            let (mode, ch, x0, x1) = (f[0], f[1] as usize, f[2] as u8, f[3] as u8);
+            let want = [f[4], f[5], f[6], f[7]].map(|v| v as f32);
+            let got = Decoder::Nvidia.palette(mode == 4, ch, x0, x1);
+            assert_eq!(got, want, "{line}");
+            lines += 1;
+        }
+        assert_eq!(lines, 11_296);
+    }
+
+    #[test]
+    fn ideal_is_the_float_palette_and_amd_rounds_near_it() {
+        for four in [true, false] {
+            for ch in 0..3 {
+                let top = if ch == 1 { 63u8 } else { 31 };
+                for x0 in 0..=top {
+                    for x1 in 0..=top {
+                        let i = Decoder::Ideal.palette(four, ch, x0, x1);
+                        let a = Decoder::Amd.palette(four, ch, x0, x1);
+                        for k in 0..4 {
+                            assert!((i[k] - a[k]).abs() <= 1.0, "{four} {ch} {x0} {x1} {k}");
+                        }
+                    }
+                }
+            }
+        }
+        let p = Decoder::Ideal.palette(true, 0, 31, 0);
+        assert_eq!(p, [255.0, 0.0, 170.0, 85.0]);
+    }
+}
