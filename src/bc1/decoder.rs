@@ -122,6 +122,8 @@ mod tests {
         assert_eq!(lines, 11_296);
     }
 
+    /// AMD's weights (43 and 21 sixty-fourths) are not thirds: with its
+    /// rounding, an entry lands up to 1⅔ levels off the float palette.
     #[test]
     fn ideal_is_the_float_palette_and_amd_rounds_near_it() {
         for four in [true, false] {
@@ -132,7 +134,8 @@ mod tests {
                         let i = Decoder::Ideal.palette(four, ch, x0, x1);
                         let a = Decoder::Amd.palette(four, ch, x0, x1);
                         for k in 0..4 {
-                            assert!((i[k] - a[k]).abs() <= 1.0, "{four} {ch} {x0} {x1} {k}");
+                            let off = (i[k] - a[k]).abs();
+                            assert!(off <= 5.0 / 3.0 + 1e-4, "{four} {ch} {x0} {x1} {k}: {off}");
                         }
                     }
                 }
