@@ -78,8 +78,14 @@ fn main() {
         let r = run(m, rel, Target::Robust, alpha);
         for d in DECODERS {
             let (b, s) = (under(&r.regular, d), under(&r.shipped, d));
-            let (br, sr) = (b.seam_rms_closed.unwrap_or(0.0), s.seam_rms_closed.unwrap_or(0.0));
-            let (bp, sp) = (b.encoding_psnr.unwrap_or(0.0), s.encoding_psnr.unwrap_or(0.0));
+            let (br, sr) = (
+                b.seam_rms_closed.unwrap_or(0.0),
+                s.seam_rms_closed.unwrap_or(0.0),
+            );
+            let (bp, sp) = (
+                b.encoding_psnr.unwrap_or(0.0),
+                s.encoding_psnr.unwrap_or(0.0),
+            );
             println!(
                 "{:<24} {:<7} {:>9.3} {:>9.3} {:>7.2} {:>9.2} {:>9.2} {:>8.3}",
                 name(rel),
@@ -108,7 +114,10 @@ fn main() {
                 .iter()
                 .map(|d| format!("{:.3}", under(&r.shipped, d).seam_rms_closed.unwrap_or(0.0)))
                 .collect();
-            print!(" {:>28}", format!("{} ms {}", r.seam_aware_ms, rms.join("/")));
+            print!(
+                " {:>28}",
+                format!("{} ms {}", r.seam_aware_ms, rms.join("/"))
+            );
         }
         println!();
     }
@@ -126,7 +135,8 @@ fn main() {
             let (mut ratio, mut cost) = (0.0f64, f64::NEG_INFINITY);
             for d in DECODERS {
                 let (b, s) = (under(&r.regular, d), under(&r.shipped, d));
-                ratio = ratio.max(s.seam_rms_closed.unwrap_or(0.0) / b.seam_rms_closed.unwrap_or(1.0));
+                ratio =
+                    ratio.max(s.seam_rms_closed.unwrap_or(0.0) / b.seam_rms_closed.unwrap_or(1.0));
                 cost = cost.max(b.encoding_psnr.unwrap_or(0.0) - s.encoding_psnr.unwrap_or(0.0));
             }
             print!(" {:>16}", format!("{ratio:.2} / {cost:.3}"));
