@@ -7,8 +7,10 @@
 //! 1. per model × decoder: seam_rms over the seams closed for the regular
 //!    and the seam-aware (`robust`) encodings, their ratio, and PSNR against
 //!    the erased texture (the one BC1 compresses) with the cost;
-//! 2. per model: the seam-aware stage's milliseconds and the seam_rms under
-//!    each decoder for each target (`ideal`, `nvidia`, `amd`, `robust`);
+//! 2. per model and target (`ideal`, `nvidia`, `amd`, `robust`): the regular
+//!    encoder's milliseconds and PSNR under each decoder (it fits its blocks
+//!    to the target's palettes), and the seam-aware stage's milliseconds and
+//!    seam_rms under each decoder;
 //! 3. the α curve under `robust`: the worst ratio and worst cost over the
 //!    three decoders.
 
@@ -38,6 +40,7 @@ fn load(rel: &str) -> Model {
 struct Run {
     regular: Metrics,
     shipped: Metrics,
+    encode_ms: u64,
     seam_aware_ms: u64,
 }
 
@@ -52,6 +55,7 @@ fn run(m: &Model, rel: &str, target: Target, alpha: f64) -> Run {
     Run {
         regular: t.bc1.expect("regular BC1"),
         shipped: t.bc1_seam_aware.expect("seam-aware BC1"),
+        encode_ms: t.timings_ms.encode,
         seam_aware_ms: t.timings_ms.seam_aware,
     }
 }
@@ -100,27 +104,46 @@ fn main() {
         }
     }
 
-    println!("\nEach target: seam-aware ms, and seam_rms (closed) under ideal / nvidia / amd:");
-    print!("{:<24}", "model");
-    for t in TARGETS {
-        print!(" {:>28}", t.name());
-    }
-    println!();
-    for (rel, m) in &models {
-        print!("{:<24}", name(rel));
+    let runs: Vec<Vec<Run>> = models
+        .iter()
+        .map(|(rel, m)| TARGETS.iter().map(|t| run(m, rel, *t, alpha)).collect())
+        .collect();
+    let per_target = |title: &str, cell: &dyn Fn(&Run) -> String| {
+        println!("\n{title}");
+        print!("{:<24}", "model");
         for t in TARGETS {
-            let r = run(m, rel, t, alpha);
-            let rms: Vec<String> = DECODERS
-                .iter()
-                .map(|d| format!("{:.3}", under(&r.shipped, d).seam_rms_closed.unwrap_or(0.0)))
-                .collect();
-            print!(
-                " {:>28}",
-                format!("{} ms {}", r.seam_aware_ms, rms.join("/"))
-            );
+            print!(" {:>28}", t.name());
         }
         println!();
-    }
+        for ((rel, _), rs) in models.iter().zip(&runs) {
+            print!("{:<24}", name(rel));
+            for r in rs {
+                print!(" {:>28}", cell(r));
+            }
+            println!();
+        }
+    };
+    let joined = |m: &Metrics, f: &dyn Fn(&DecoderMetrics) -> f64, digits: usize| {
+        DECODERS
+            .iter()
+            .map(|d| format!("{:.digits$}", f(under(m, d))))
+            .collect::<Vec<_>>()
+            .join("/")
+    };
+    per_target(
+        "Each target, the regular encoder: encode ms, and PSNR (dB) against the erased texture under ideal / nvidia / amd:",
+        &|r| {
+            let psnr = joined(&r.regular, &|d| d.encoding_psnr.unwrap_or(0.0), 2);
+            format!("{} ms {psnr}", r.encode_ms)
+        },
+    );
+    per_target(
+        "Each target, seam-aware: ms, and seam_rms (closed) under ideal / nvidia / amd:",
+        &|r| {
+            let rms = joined(&r.shipped, &|d| d.seam_rms_closed.unwrap_or(0.0), 3);
+            format!("{} ms {rms}", r.seam_aware_ms)
+        },
+    );
 
     println!("\nα under robust: worst ratio to the regular encoding / worst cost (dB) over the decoders:");
     print!("{:<24}", "model");

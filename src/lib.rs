@@ -3,9 +3,11 @@
 //! Data flows one way: [`model`] (load glTF, bind textures, weld, find seams)
 //! → [`seam`] (exact metric, erasure) → [`bc1`] (encode, seam-aware encode,
 //! write DDS) → [`pipeline`] (one job: model in, files and report out);
+//! [`budget`] decides from a model's plan whether a job may run at all;
 //! [`service`] runs the pipeline behind HTTP.
 
 pub mod bc1;
+pub mod budget;
 pub mod heap;
 pub mod mips;
 pub mod model;

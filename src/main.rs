@@ -9,6 +9,7 @@ use anyhow::Context;
 use clap::{Parser, Subcommand};
 
 use seamstress::bc1::Level;
+use seamstress::budget::{self, Limits};
 use seamstress::model::{self, LoadOptions};
 use seamstress::pipeline::{
     self, Format, Method, ProcessOptions, Target, DEFAULT_SEAM_TOLERANCE, DEFAULT_SEAM_WEIGHT,
@@ -36,7 +37,7 @@ enum Command {
     /// Erase the seams of every colour texture of a model and encode it to BC1.
     Process(ProcessArgs),
     /// Run the HTTP service: a durable job queue and a worker pool over the engine.
-    Serve(seamstress::service::ServeArgs),
+    Serve(Box<seamstress::service::ServeArgs>),
 }
 
 #[derive(clap::Args)]
@@ -93,6 +94,12 @@ struct ProcessArgs {
     /// them, with close-ups of the worst.
     #[arg(long)]
     pictures: bool,
+    /// Refuse (exit 2) a model whose estimated peak memory is above this
+    /// (512M, 4G, ...), before decoding it. Default: the memory this
+    /// process may use (the machine's, or less under `ulimit -v` or a
+    /// container's limit).
+    #[arg(long, value_name = "BYTES", value_parser = budget::parse_bytes)]
+    max_memory: Option<u64>,
 }
 
 fn main() -> ExitCode {
@@ -116,11 +123,11 @@ fn main() -> ExitCode {
                 ExitCode::from(1)
             }
         },
-        Command::Serve(args) => match seamstress::service::serve(args) {
+        Command::Serve(args) => match seamstress::service::serve(*args) {
             Ok(()) => ExitCode::SUCCESS,
             Err(e) => {
                 eprintln!("error: {e}");
-                ExitCode::from(1)
+                ExitCode::from(if e.is_usage() { 2 } else { 1 })
             }
         },
     }
@@ -177,21 +184,20 @@ fn process(args: &ProcessArgs) -> Result<(), Failure> {
             args.out.display()
         )));
     }
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("cannot create {}", args.out.display()))?;
+    // Every file is written into a folder of this run's own, then renamed
+    // into place: runs sharing an --out never see each other's halves.
+    let mut staging = Staging::create(&args.out).map_err(|e| {
+        Failure::BadInput(format!(
+            "--out {}: cannot write there: {e}",
+            args.out.display()
+        ))
+    })?;
 
     let load_opts = LoadOptions {
         max_texture_size: args.max_texture_size,
         extra_maps: args.extra_maps,
         ..LoadOptions::default()
     };
-    let t = Instant::now();
-    let model = match model::load(&args.input, &load_opts) {
-        Ok(m) => m,
-        Err(e) if e.is_bad_input() => return Err(Failure::BadInput(e.to_string())),
-        Err(e) => return Err(Failure::Internal(e.into())),
-    };
-    let load_ms = t.elapsed().as_millis() as u64;
     let opts = ProcessOptions {
         mode: args.mode,
         method: args.method,
@@ -206,6 +212,32 @@ fn process(args: &ProcessArgs) -> Result<(), Failure> {
         pictures: args.pictures,
         decoder: args.decoder,
     };
+    let bad_load = |e: model::LoadError| {
+        if e.is_bad_input() {
+            Failure::BadInput(e.to_string())
+        } else {
+            Failure::Internal(e.into())
+        }
+    };
+    let t = Instant::now();
+    let plan = model::plan(&args.input, &load_opts).map_err(bad_load)?;
+    let need = budget::need(&plan, &opts);
+    let limits = Limits {
+        max_memory: args.max_memory.unwrap_or_else(budget::usable_memory),
+    };
+    tracing::debug!(
+        texels = need.texels,
+        quadrature_points = need.quadrature_points,
+        covered_texels = need.covered_texels,
+        memory_bytes = need.memory_bytes,
+        max_memory = limits.max_memory,
+        "budget"
+    );
+    if let Err(over) = budget::check(&need, &limits) {
+        return Err(Failure::BadInput(format!("{}: {over}", plan.file())));
+    }
+    let model = plan.decode().map_err(bad_load)?;
+    let load_ms = t.elapsed().as_millis() as u64;
     let name = args
         .input
         .file_name()
@@ -213,26 +245,66 @@ fn process(args: &ProcessArgs) -> Result<(), Failure> {
         .unwrap_or_default();
     let output = pipeline::run(&model, &name, load_ms, &opts).context("processing failed")?;
 
-    for f in &output.files {
-        write_atomic(&args.out.join(&f.name), &f.bytes)?;
-    }
     let mut json = serde_json::to_vec_pretty(&output.report).context("cannot serialise report")?;
     json.push(b'\n');
-    write_atomic(&args.out.join("report.json"), &json)?;
+    for f in &output.files {
+        staging.write(&f.name, &f.bytes)?;
+    }
+    staging.write("report.json", &json)?;
+    staging.publish()?;
     std::io::stdout()
         .write_all(&json)
         .context("cannot write to standard output")?;
     Ok(())
 }
 
-/// Writes to a temporary name, syncs, then renames, so a reader never sees half a file.
-fn write_atomic(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
-    let tmp = path.with_extension("tmp~");
-    let mut f =
-        std::fs::File::create(&tmp).with_context(|| format!("cannot create {}", tmp.display()))?;
-    f.write_all(bytes)
-        .and_then(|_| f.sync_all())
-        .with_context(|| format!("cannot write {}", tmp.display()))?;
-    std::fs::rename(&tmp, path).with_context(|| format!("cannot write {}", path.display()))?;
-    Ok(())
+/// A run's private folder inside `--out` (removed when dropped): files are
+/// written and synced there, then renamed into `--out` one by one, so a
+/// reader never sees half a file and concurrent runs never clash.
+struct Staging {
+    out: PathBuf,
+    dir: PathBuf,
+    names: Vec<String>,
+}
+
+impl Staging {
+    fn create(out: &Path) -> std::io::Result<Staging> {
+        std::fs::create_dir_all(out)?;
+        let nanos = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.subsec_nanos());
+        let dir = out.join(format!(".seamstress-{}-{nanos:08x}", std::process::id()));
+        std::fs::create_dir(&dir)?;
+        Ok(Staging {
+            out: out.to_path_buf(),
+            dir,
+            names: Vec::new(),
+        })
+    }
+
+    fn write(&mut self, name: &str, bytes: &[u8]) -> anyhow::Result<()> {
+        let path = self.dir.join(name);
+        let mut f = std::fs::File::create(&path)
+            .with_context(|| format!("cannot create {}", path.display()))?;
+        f.write_all(bytes)
+            .and_then(|_| f.sync_all())
+            .with_context(|| format!("cannot write {}", path.display()))?;
+        self.names.push(name.to_string());
+        Ok(())
+    }
+
+    fn publish(&self) -> anyhow::Result<()> {
+        for name in &self.names {
+            let to = self.out.join(name);
+            std::fs::rename(self.dir.join(name), &to)
+                .with_context(|| format!("cannot write {}", to.display()))?;
+        }
+        Ok(())
+    }
+}
+
+impl Drop for Staging {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.dir);
+    }
 }

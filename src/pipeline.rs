@@ -13,9 +13,9 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::bc1::dds::{write_dds, DdsHeaderKind, MipLevel};
-pub use crate::bc1::seam_aware::Target;
 use crate::bc1::seam_aware::{optimise, Problem, SeamAwareOptions};
 use crate::bc1::Decoder;
+pub use crate::bc1::Target;
 use crate::bc1::{self, Block, Level};
 use crate::mips;
 use crate::model::{find_seams, Model, SeamSet, Skipped, Texture, TextureBinding};
@@ -460,7 +460,7 @@ fn encode_level(
     let (w, h) = (level.grid.width, level.grid.height);
     let target = rgb(&level.stored);
     let t = Instant::now();
-    let regular = bc1::encode_image(&target, w, h, 3, opts.bc1_level)
+    let regular = bc1::encode_image_for(&target, w, h, 3, opts.bc1_level, opts.decoder)
         .map_err(|e| encode_err(e.to_string()))?;
     let encode_ms = t.elapsed().as_millis() as u64;
     let t = Instant::now();

@@ -927,3 +927,211 @@ fn every_route_is_in_openapi_and_the_reverse() {
     assert_eq!(routes, documented);
     assert_eq!(seamstress::service::OPENAPI, spec);
 }
+
+/// `seamstress serve` run to its end (it is expected to refuse to start).
+fn serve_refused(data: &Path, extra: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_seamstress"))
+        .args(["serve", "--listen", "127.0.0.1:0", "--data"])
+        .arg(data)
+        .args(extra)
+        .env_remove("SEAMSTRESS_TOKENS")
+        .output()
+        .unwrap()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn uploads_over_the_budget_are_refused_with_the_quantity_named() {
+    let data = scratch("budget");
+    let s = Server::start(&data, &["--max-memory", "64M"]);
+    let c = client();
+    // UVs tiling the texture 1000 times: refused however much memory there is.
+    let tiled = std::fs::read(common::tiled_duck(1000.0, &scratch("budget-model"))).unwrap();
+    let (status, body) = json_of(submit_raw(&c, &s, tiled, "tiled.gltf", "").await).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{body}");
+    assert_eq!(body["code"], "too_large", "{body}");
+    let message = body["message"].as_str().unwrap();
+    assert!(message.contains("texels covered by triangles"), "{message}");
+    // Fox (2048², estimated above 600 MiB) is over this server's 64 MiB.
+    let (status, body) =
+        json_of(submit_form(&c, &s, form_for(&assets().join("Fox/Fox.gltf"))).await).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{body}");
+    assert_eq!(body["code"], "too_large", "{body}");
+    let message = body["message"].as_str().unwrap();
+    assert!(
+        message.contains("estimated memory") && message.contains("64.0 MiB"),
+        "{message}"
+    );
+    // A small model still runs.
+    let small = std::fs::read(assets().join("cube/cube_gradient_128.glb")).unwrap();
+    let job = accepted(submit_raw(&c, &s, small, "small.glb", "").await).await;
+    let job = finish(&c, &s, job["id"].as_str().unwrap()).await;
+    assert_eq!(job["state"], "succeeded", "{job}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_second_server_on_one_data_folder_refuses_and_touches_nothing() {
+    let data = scratch("owner");
+    let s = Server::start(&data, &["--workers", "1"]);
+    let c = client();
+    let cube = std::fs::read(assets().join("cube/cube_gradient_1024.glb")).unwrap();
+    let job = accepted(submit_raw(&c, &s, cube, "big.glb", "").await).await;
+    let id = job["id"].as_str().unwrap().to_string();
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let (_, j) = json_of(get(&c, &s, &format!("/v1/jobs/{id}")).await).await;
+        if j["state"] != "queued" {
+            break;
+        }
+        assert!(Instant::now() < deadline, "{j}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let o = serve_refused(&data, &[]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("in use by another seamstress server"), "{err}");
+    assert!(err.contains(&format!("pid {}", s.child.id())), "{err}");
+    let j = finish(&c, &s, &id).await;
+    assert_eq!(j["state"], "succeeded", "{j}");
+    assert_eq!(j["attempts"], 1, "{j}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_damaged_job_store_is_never_taken_for_an_empty_one() {
+    let data = scratch("damaged");
+    let mut s = Server::start(&data, &[]);
+    let c = client();
+    let small = std::fs::read(assets().join("cube/cube_gradient_128.glb")).unwrap();
+    let job = accepted(submit_raw(&c, &s, small, "small.glb", "").await).await;
+    let id = job["id"].as_str().unwrap().to_string();
+    assert_eq!(finish(&c, &s, &id).await["state"], "succeeded");
+    s.kill();
+    let folder = data.join("files/jobs").join(&id);
+    assert!(folder.exists());
+    let store = data.join("jobs.sqlite3");
+    for side in ["jobs.sqlite3-wal", "jobs.sqlite3-shm"] {
+        let _ = std::fs::remove_file(data.join(side));
+    }
+    std::fs::write(&store, b"").unwrap();
+    let o = serve_refused(&data, &[]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("empty") && err.contains("--rebuild-store"),
+        "{err}"
+    );
+    assert_eq!(err.trim().lines().count(), 1, "{err}");
+    assert!(folder.exists(), "the refused start deleted job files");
+    std::fs::remove_file(&store).unwrap();
+    let o = serve_refused(&data, &[]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("missing"));
+    assert!(folder.exists());
+    // Told to rebuild, it starts afresh.
+    let s = Server::start(&data, &["--rebuild-store"]);
+    let (status, _) = json_of(get(&c, &s, &format!("/v1/jobs/{id}")).await).await;
+    assert_eq!(status, StatusCode::NOT_FOUND);
+}
+
+/// A tmpfs of `mb` MiB mounted at `dir` for the life of the value, where
+/// this machine lets tests mount (as root); `None` (with a notice) where
+/// not, which fails under `SEAMSTRESS_REQUIRE_TOOLS`.
+struct SmallDisk(PathBuf);
+
+impl SmallDisk {
+    fn mount(dir: &Path, mb: u32) -> Option<SmallDisk> {
+        std::fs::create_dir_all(dir).unwrap();
+        let ok = Command::new("mount")
+            .args(["-t", "tmpfs", "-o", &format!("size={mb}m"), "tmpfs"])
+            .arg(dir)
+            .status()
+            .is_ok_and(|s| s.success());
+        if !ok {
+            assert!(
+                std::env::var_os("SEAMSTRESS_REQUIRE_TOOLS").is_none(),
+                "cannot mount a tmpfs (needs root) and SEAMSTRESS_REQUIRE_TOOLS is set"
+            );
+            eprintln!("skipped: cannot mount a small tmpfs here (needs root)");
+            return None;
+        }
+        Some(SmallDisk(dir.to_path_buf()))
+    }
+
+    fn free(&self) -> u64 {
+        use std::os::unix::ffi::OsStrExt;
+        let c = std::ffi::CString::new(self.0.as_os_str().as_bytes()).unwrap();
+        let mut st: libc::statvfs = unsafe { std::mem::zeroed() };
+        assert_eq!(unsafe { libc::statvfs(c.as_ptr(), &mut st) }, 0);
+        st.f_bavail as u64 * st.f_frsize as u64
+    }
+
+    /// Fills the disk until `left` bytes stay free.
+    fn fill_to(&self, left: u64) {
+        let path = self.0.join("filler");
+        let have = std::fs::metadata(&path).map_or(0, |m| m.len());
+        let add = self.free().saturating_sub(left);
+        let f = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&path)
+            .unwrap();
+        use std::io::Write;
+        let mut w = std::io::BufWriter::new(f);
+        let chunk = vec![1u8; 64 << 10];
+        let mut done = 0;
+        while done < add {
+            let n = chunk.len().min((add - done) as usize);
+            w.write_all(&chunk[..n]).unwrap();
+            done += n as u64;
+        }
+        w.flush().unwrap();
+        let _ = have;
+    }
+}
+
+impl Drop for SmallDisk {
+    fn drop(&mut self) {
+        let _ = Command::new("umount").arg("-l").arg(&self.0).status();
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_full_disk_fails_cleanly_and_says_so() {
+    let root = scratch("full");
+    let Some(disk) = SmallDisk::mount(&root.join("disk"), 16) else {
+        return;
+    };
+    let data = root.join("disk/data");
+    let mut s = Server::start(&data, &["--workers", "1", "--min-free", "256K"]);
+    let c = client();
+    let cube = std::fs::read(assets().join("cube/cube_gradient_1024.glb")).unwrap();
+    let (status, _) = json_of(get(&c, &s, "/readyz").await).await;
+    assert_eq!(status, StatusCode::OK);
+
+    // Room for the upload and the job's records, not for its results.
+    disk.fill_to(cube.len() as u64 + (900 << 10));
+    let job = accepted(submit_raw(&c, &s, cube.clone(), "big.glb", "").await).await;
+    let id = job["id"].as_str().unwrap().to_string();
+    let j = finish(&c, &s, &id).await;
+    assert_eq!(j["state"], "failed", "{j}");
+    assert_eq!(j["error"]["code"], "storage_full", "{j}");
+    assert!(
+        !data.join("files/jobs").join(&id).exists(),
+        "partial results left"
+    );
+
+    // Below --min-free: not ready, and uploads are refused with 507.
+    disk.fill_to(128 << 10);
+    let (status, body) = json_of(get(&c, &s, "/readyz").await).await;
+    assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE, "{body}");
+    assert_eq!(body["code"], "storage_low", "{body}");
+    let (status, body) = json_of(submit_raw(&c, &s, cube, "big.glb", "").await).await;
+    assert_eq!(status, StatusCode::INSUFFICIENT_STORAGE, "{body}");
+    assert_eq!(body["code"], "storage_full", "{body}");
+
+    // Space back: ready again.
+    std::fs::remove_file(root.join("disk/filler")).unwrap();
+    let (status, _) = json_of(get(&c, &s, "/readyz").await).await;
+    assert_eq!(status, StatusCode::OK);
+    s.kill();
+    drop(disk);
+}

@@ -76,6 +76,45 @@ impl Decoder {
     }
 }
 
+/// The decoders an encoding is made for: the integer searches score their
+/// candidates under each of them.
+#[derive(
+    Clone, Copy, Debug, Default, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize,
+)]
+#[serde(rename_all = "snake_case")]
+pub enum Target {
+    /// The float palette (SPEC §5).
+    Ideal,
+    /// NVIDIA's texture units.
+    Nvidia,
+    /// AMD's.
+    Amd,
+    /// All three at once: one file for any GPU.
+    #[default]
+    Robust,
+}
+
+impl Target {
+    /// The decoders whose mean error the searches minimise.
+    pub fn decoders(self) -> &'static [Decoder] {
+        match self {
+            Target::Ideal => &[Decoder::Ideal],
+            Target::Nvidia => &[Decoder::Nvidia],
+            Target::Amd => &[Decoder::Amd],
+            Target::Robust => &Decoder::ALL,
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Target::Ideal => "ideal",
+            Target::Nvidia => "nvidia",
+            Target::Amd => "amd",
+            Target::Robust => "robust",
+        }
+    }
+}
+
 /// NVIDIA's green: (256·a + t(d/4) + 128 + w·d) / 256 with d = b − a on the
 /// 8-bit expansions, t truncating toward zero (w = 80 for a third, 128 for
 /// a half). The numerator is never negative.

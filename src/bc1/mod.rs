@@ -14,6 +14,7 @@ pub mod dds;
 pub mod decoder;
 mod encode;
 mod fast;
+mod retarget;
 pub mod seam_aware;
 
 use std::fmt;
@@ -22,7 +23,7 @@ use std::str::FromStr;
 use rayon::prelude::*;
 
 pub use block::{expand565, pack565, unpack565, Block};
-pub use decoder::Decoder;
+pub use decoder::{Decoder, Target};
 
 /// Encoder effort. `Default` is the pipeline's default.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
@@ -153,6 +154,22 @@ pub fn encode_image(
     blocks.par_chunks_mut(bw).enumerate().for_each(|(by, row)| {
         encode::encode_row(rgb, width, height, stride_channels, by, row, &effort);
     });
+    Ok(blocks)
+}
+
+/// [`encode_image`], then each block fitted to the palettes of the
+/// decoders `target` names (see `retarget.rs`): under NVIDIA's or AMD's
+/// rounding the float palette's best block is a few levels off.
+pub fn encode_image_for(
+    rgb: &[f32],
+    width: usize,
+    height: usize,
+    stride_channels: usize,
+    level: Level,
+    target: Target,
+) -> Result<Vec<Block>, Bc1Error> {
+    let mut blocks = encode_image(rgb, width, height, stride_channels, level)?;
+    retarget::retarget(&mut blocks, rgb, width, height, stride_channels, target);
     Ok(blocks)
 }
 

@@ -37,7 +37,7 @@
 // step; iterator chains would hide which index is which.
 #![allow(clippy::needless_range_loop)]
 
-use crate::bc1::{pack565, unpack565, Block, Decoder};
+use crate::bc1::{pack565, unpack565, Block, Decoder, Target};
 use crate::seam::quadrature::QuadPoint;
 use crate::seam::system::{SolveError, SpdSystem};
 
@@ -63,44 +63,6 @@ const ENDPOINT_RADIUS: i32 = 2;
 /// cube_gradient_1024 at a cost of 0.01–0.13 dB; 256 bought only 5–10% more
 /// seam agreement for 0.2–0.28 dB.
 pub const DEFAULT_ALPHA: f64 = 48.0;
-
-/// The decoders the integer search keeps the seams closed under.
-#[derive(
-    Clone, Copy, Debug, Default, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize,
-)]
-#[serde(rename_all = "snake_case")]
-pub enum Target {
-    /// The float palette (SPEC §5).
-    Ideal,
-    /// NVIDIA's texture units.
-    Nvidia,
-    /// AMD's.
-    Amd,
-    /// All three at once: one file for any GPU.
-    #[default]
-    Robust,
-}
-
-impl Target {
-    /// The decoders whose mean energy the search minimises.
-    pub fn decoders(self) -> &'static [Decoder] {
-        match self {
-            Target::Ideal => &[Decoder::Ideal],
-            Target::Nvidia => &[Decoder::Nvidia],
-            Target::Amd => &[Decoder::Amd],
-            Target::Robust => &Decoder::ALL,
-        }
-    }
-
-    pub fn name(self) -> &'static str {
-        match self {
-            Target::Ideal => "ideal",
-            Target::Nvidia => "nvidia",
-            Target::Amd => "amd",
-            Target::Robust => "robust",
-        }
-    }
-}
 
 #[derive(Clone, Copy, Debug)]
 pub struct SeamAwareOptions {

@@ -21,6 +21,17 @@ impl TextureEncoding {
     }
 }
 
+/// What an image's header announces.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ImageHeader {
+    pub width: u32,
+    pub height: u32,
+    /// 1 (grey), 2 (grey+alpha), 3 (RGB), 4 (RGBA).
+    pub channels: u8,
+    /// 8 or 16.
+    pub bits: u8,
+}
+
 /// A texture as the seam engine sees it: row-major texels, `channels` f32
 /// values in \[0, 1\] each, in the image's stored encoding (no sRGB decode).
 #[derive(Clone, Debug, PartialEq)]
@@ -78,10 +89,29 @@ fn one_line(s: impl std::fmt::Display) -> String {
 }
 
 impl Texture {
-    /// Decodes a PNG or JPEG. `max_size` bounds width and height each; the
-    /// dimensions are read from the header and checked before any texel is
-    /// decoded, so a small file announcing a huge image costs nothing.
-    pub fn decode(bytes: &[u8], max_size: u32) -> Result<Texture, TextureError> {
+    /// Reads a PNG's or JPEG's header only: its size and channels, checked
+    /// against `max_size` per side. Costs nothing however large the image
+    /// announces itself, so budgets are decided before any texel exists.
+    pub fn probe(bytes: &[u8], max_size: u32) -> Result<ImageHeader, TextureError> {
+        let decoder = Self::header_decoder(bytes, max_size)?;
+        let (width, height) = decoder.dimensions();
+        let colour = decoder.color_type();
+        Ok(ImageHeader {
+            width,
+            height,
+            channels: colour.channel_count(),
+            bits: if colour.bytes_per_pixel() / colour.channel_count() > 1 {
+                16
+            } else {
+                8
+            },
+        })
+    }
+
+    fn header_decoder(
+        bytes: &[u8],
+        max_size: u32,
+    ) -> Result<Box<dyn ImageDecoder + '_>, TextureError> {
         let reader = ImageReader::new(Cursor::new(bytes))
             .with_guessed_format()
             .map_err(|e| TextureError::Decode(one_line(e)))?;
@@ -89,7 +119,7 @@ impl Texture {
             Some(image::ImageFormat::Png) | Some(image::ImageFormat::Jpeg) => {}
             _ => return Err(TextureError::UnknownFormat),
         }
-        let mut decoder = reader
+        let decoder = reader
             .into_decoder()
             .map_err(|e| TextureError::Decode(one_line(e)))?;
         let (width, height) = decoder.dimensions();
@@ -103,6 +133,14 @@ impl Texture {
         if width == 0 || height == 0 {
             return Err(TextureError::Empty { width, height });
         }
+        Ok(Box::new(decoder))
+    }
+
+    /// Decodes a PNG or JPEG. `max_size` bounds width and height each; the
+    /// dimensions are read from the header and checked before any texel is
+    /// decoded, so a small file announcing a huge image costs nothing.
+    pub fn decode(bytes: &[u8], max_size: u32) -> Result<Texture, TextureError> {
+        let mut decoder = Self::header_decoder(bytes, max_size)?;
         let total = decoder.total_bytes();
         let mut limits = Limits::default();
         limits.max_image_width = Some(max_size);

@@ -18,7 +18,7 @@ use gltf::json::accessor::{ComponentType, Type};
 use gltf::json::mesh::{Mode, Semantic};
 use gltf::json::validation::Checked;
 
-use super::image::{Texture, TextureError};
+use super::image::{ImageHeader, Texture, TextureError};
 use super::{Model, Skipped, TextureBinding, UvTriangle, Wrap};
 
 /// What to load and how much to trust.
@@ -42,6 +42,14 @@ impl Default for LoadOptions {
         }
     }
 }
+
+/// Largest file a model may refer to (an image, or a buffer whose
+/// byteLength says so): what one job may read into memory.
+const MAX_FILE_BYTES: u64 = 2 << 30;
+
+/// How much longer than its byteLength a buffer file may be (padding,
+/// trailing bytes some exporters leave); a longer one is refused unread.
+const BUFFER_SLACK: u64 = 64 << 10;
 
 /// Extensions that may appear in `extensionsRequired`: the ones this loader
 /// applies (texture transform, quantized attributes) or that cannot change
@@ -135,6 +143,12 @@ pub enum ResolveError {
 pub trait Resolver {
     fn read(&self, path: &str) -> Result<Cow<'_, [u8]>, ResolveError>;
 
+    /// The file's size in bytes, without reading it where that is possible,
+    /// so a file far larger than the model declares is refused unread.
+    fn len(&self, path: &str) -> Result<u64, ResolveError> {
+        self.read(path).map(|b| b.len() as u64)
+    }
+
     /// Whether `read` would succeed, for files the model names but that
     /// are not processed.
     fn check(&self, path: &str) -> Result<(), ResolveError> {
@@ -183,6 +197,10 @@ impl Resolver for DirResolver {
     fn check(&self, path: &str) -> Result<(), ResolveError> {
         self.locate(path).map(drop)
     }
+
+    fn len(&self, path: &str) -> Result<u64, ResolveError> {
+        Ok(self.locate(path)?.metadata()?.len())
+    }
 }
 
 /// In-memory files keyed by their path relative to the model, `/`-separated
@@ -215,6 +233,24 @@ impl Resolver for NoFiles {
 
 /// Loads a `.glb`, or a `.gltf` whose external files lie in its folder.
 pub fn load(path: &Path, opts: &LoadOptions) -> Result<Model, LoadError> {
+    plan(path, opts)?.decode()
+}
+
+/// Loads a model from memory. `main_name` names it in errors; `files`
+/// supplies what its URIs refer to (a map of name → bytes, a folder, or
+/// [`NoFiles`]).
+pub fn load_from_memory(
+    main_name: &str,
+    main: &[u8],
+    files: &dyn Resolver,
+    opts: &LoadOptions,
+) -> Result<Model, LoadError> {
+    plan_from_memory(main_name, main, files, opts)?.decode()
+}
+
+/// Reads and checks everything of a `.glb` or `.gltf` on disk but the
+/// texels: see [`Plan`].
+pub fn plan(path: &Path, opts: &LoadOptions) -> Result<Plan, LoadError> {
     let file = printable(&path.display().to_string());
     let io_err = |source: io::Error| LoadError {
         file: file.clone(),
@@ -229,35 +265,100 @@ pub fn load(path: &Path, opts: &LoadOptions) -> Result<Model, LoadError> {
         _ => Path::new("."),
     };
     let resolver = DirResolver::new(dir).map_err(io_err)?;
-    load_from_memory(&file, &bytes, &resolver, opts)
+    plan_from_memory(&file, &bytes, &resolver, opts)
 }
 
-/// Loads a model from memory. `main_name` names it in errors; `files`
-/// supplies what its URIs refer to (a map of name → bytes, a folder, or
-/// [`NoFiles`]).
-pub fn load_from_memory(
+/// [`plan`] for a model in memory, as [`load_from_memory`] takes it.
+pub fn plan_from_memory(
     main_name: &str,
     main: &[u8],
     files: &dyn Resolver,
     opts: &LoadOptions,
-) -> Result<Model, LoadError> {
-    let started = std::time::Instant::now();
-    let result = Loader::run(main, files, opts);
-    match result {
-        Ok(model) => {
-            tracing::info!(
-                file = main_name,
-                textures = model.bindings.len(),
-                skipped = model.skipped.len(),
-                ms = started.elapsed().as_millis() as u64,
-                "model loaded"
-            );
-            Ok(model)
+) -> Result<Plan, LoadError> {
+    match Loader::run(main, files, opts) {
+        Ok(mut plan) => {
+            plan.file = printable(main_name);
+            Ok(plan)
         }
         Err(kind) => Err(LoadError {
             file: printable(main_name),
             kind,
         }),
+    }
+}
+
+/// A model read and checked up to its images' headers: every container,
+/// buffer, accessor and URI, the triangles of each texture, and each
+/// image's size and channels; no texel decoded yet. What a job will cost
+/// is known from it (`crate::budget`) before any large allocation.
+#[derive(Clone, Debug)]
+pub struct Plan {
+    file: String,
+    pub textures: Vec<PlannedTexture>,
+    pub skipped: Vec<Skipped>,
+    max_texture_size: u32,
+}
+
+/// One texture of a [`Plan`]: a [`TextureBinding`] whose image is still encoded.
+#[derive(Clone, Debug)]
+pub struct PlannedTexture {
+    pub image: usize,
+    pub name: String,
+    pub header: ImageHeader,
+    pub wrap_s: Wrap,
+    pub wrap_t: Wrap,
+    pub srgb: bool,
+    pub triangles: Vec<UvTriangle>,
+    bytes: Vec<u8>,
+}
+
+impl Plan {
+    /// The model file, as errors name it.
+    pub fn file(&self) -> &str {
+        &self.file
+    }
+
+    /// Decodes every image: the loaded model.
+    pub fn decode(self) -> Result<Model, LoadError> {
+        let started = std::time::Instant::now();
+        let mut bindings = Vec::with_capacity(self.textures.len());
+        for t in self.textures {
+            let image = t.image;
+            let texture =
+                Texture::decode(&t.bytes, self.max_texture_size).map_err(|source| LoadError {
+                    file: self.file.clone(),
+                    kind: LoadErrorKind::Texture { image, source },
+                })?;
+            tracing::debug!(
+                image,
+                name = t.name.as_str(),
+                width = texture.width,
+                height = texture.height,
+                channels = texture.channels,
+                triangles = t.triangles.len(),
+                "texture bound"
+            );
+            bindings.push(TextureBinding {
+                image,
+                name: t.name,
+                texture,
+                wrap_s: t.wrap_s,
+                wrap_t: t.wrap_t,
+                srgb: t.srgb,
+                triangles: t.triangles,
+            });
+        }
+        tracing::info!(
+            file = self.file.as_str(),
+            textures = bindings.len(),
+            skipped = self.skipped.len(),
+            ms = started.elapsed().as_millis() as u64,
+            "model loaded"
+        );
+        Ok(Model {
+            bindings,
+            skipped: self.skipped,
+        })
     }
 }
 
@@ -503,10 +604,13 @@ fn uri_for_message(uri: &str) -> String {
     printable(&s)
 }
 
+/// Reads what `uri` names, refusing (unread) a file of more than `max_len`
+/// bytes.
 fn fetch<'r>(
     what: &str,
     uri: &str,
     files: &'r dyn Resolver,
+    max_len: u64,
 ) -> Result<Cow<'r, [u8]>, LoadErrorKind> {
     let refused = |reason: String| LoadErrorKind::Refused {
         what: what.to_string(),
@@ -517,9 +621,19 @@ fn fetch<'r>(
         UriTarget::Data(rest) => decode_data_uri(rest)
             .map(Cow::Owned)
             .map_err(|e| invalid(format!("{what}: {e}"))),
-        UriTarget::File(path) => files
-            .read(&path)
-            .map_err(|e| resolve_error(what, uri, &path, e)),
+        UriTarget::File(path) => {
+            let len = files
+                .len(&path)
+                .map_err(|e| resolve_error(what, uri, &path, e))?;
+            if len > max_len {
+                return Err(refused(format!(
+                    "the file holds {len} bytes, more than the {max_len} accepted"
+                )));
+            }
+            files
+                .read(&path)
+                .map_err(|e| resolve_error(what, uri, &path, e))
+        }
     }
 }
 
@@ -552,8 +666,16 @@ fn resolve_error(what: &str, uri: &str, path: &str, e: ResolveError) -> LoadErro
             "{what}: \"{}\" is not a regular file",
             uri_for_message(uri)
         )),
+        // A name the system cannot even look up is the model's fault.
+        ResolveError::Io(source) if source.raw_os_error() == Some(libc::ENAMETOOLONG) => {
+            LoadErrorKind::Refused {
+                what: what.to_string(),
+                uri: uri_for_message(uri),
+                reason: "the name is too long".into(),
+            }
+        }
         ResolveError::Io(source) => LoadErrorKind::Io {
-            path: printable(path),
+            path: uri_for_message(path),
             source,
         },
     }
@@ -851,7 +973,7 @@ impl<'a> Loader<'a> {
         main: &'a [u8],
         files: &'a dyn Resolver,
         opts: &LoadOptions,
-    ) -> Result<Model, LoadErrorKind> {
+    ) -> Result<Plan, LoadErrorKind> {
         let container = split_container(main)?;
         let root = parse_root(container.json)?;
         let buffers = load_buffers(&root, container.bin, files)?;
@@ -870,7 +992,7 @@ impl<'a> Loader<'a> {
             accessors,
         };
         loader.check_images(files)?;
-        loader.build(files, opts)
+        loader.plan(files, opts)
     }
 
     fn view_bytes(&self, view: usize) -> Result<&[u8], LoadErrorKind> {
@@ -1015,7 +1137,7 @@ impl<'a> Loader<'a> {
     ) -> Result<Cow<'_, [u8]>, LoadErrorKind> {
         let img = &self.root.images[i];
         match (&img.uri, &img.buffer_view) {
-            (Some(uri), _) => fetch(&format!("image {i}"), uri, files),
+            (Some(uri), _) => fetch(&format!("image {i}"), uri, files, MAX_FILE_BYTES),
             (None, Some(view)) => Ok(Cow::Borrowed(self.view_bytes(view.value())?)),
             (None, None) => Err(invalid(format!("image {i}: no uri and no bufferView"))),
         }
@@ -1171,7 +1293,7 @@ impl<'a> Loader<'a> {
         Ok(MaterialUses { uses, normal_maps })
     }
 
-    fn build(&self, files: &'a dyn Resolver, opts: &LoadOptions) -> Result<Model, LoadErrorKind> {
+    fn plan(&self, files: &'a dyn Resolver, opts: &LoadOptions) -> Result<Plan, LoadErrorKind> {
         let MaterialUses { uses, normal_maps } = self.material_uses(opts)?;
         let mut builders: BTreeMap<usize, BindingBuilder> = BTreeMap::new();
         let mut skipped = Vec::new();
@@ -1327,7 +1449,7 @@ impl<'a> Loader<'a> {
             }
         }
 
-        let mut bindings = Vec::new();
+        let mut textures = Vec::new();
         let mut names = NameSet::default();
         for (image, b) in builders {
             if b.triangles.is_empty() {
@@ -1339,33 +1461,24 @@ impl<'a> Loader<'a> {
                 });
                 continue;
             }
-            let bytes = self.image_bytes(image, files)?;
-            let texture = Texture::decode(&bytes, opts.max_texture_size)
+            let bytes = self.image_bytes(image, files)?.into_owned();
+            let header = Texture::probe(&bytes, opts.max_texture_size)
                 .map_err(|source| LoadErrorKind::Texture { image, source })?;
-            drop(bytes);
             let name = names.claim(&self.image_name_candidates(image), image);
             let (wrap_s, wrap_t) = b.wrap.unwrap_or_default();
-            tracing::debug!(
-                image,
-                name = name.as_str(),
-                width = texture.width,
-                height = texture.height,
-                channels = texture.channels,
-                triangles = b.triangles.len(),
-                "texture bound"
-            );
-            bindings.push(TextureBinding {
+            textures.push(PlannedTexture {
                 image,
                 name,
-                texture,
+                header,
                 wrap_s,
                 wrap_t,
                 srgb: b.srgb,
                 triangles: b.triangles,
+                bytes,
             });
         }
         for (image, material) in normal_maps {
-            if bindings.iter().any(|b| b.image == image) {
+            if textures.iter().any(|t| t.image == image) {
                 continue;
             }
             tracing::debug!(image, material, "normal map skipped");
@@ -1376,7 +1489,12 @@ impl<'a> Loader<'a> {
                 reason: "tangent-space normal map".into(),
             });
         }
-        Ok(Model { bindings, skipped })
+        Ok(Plan {
+            file: String::new(),
+            textures,
+            skipped,
+            max_texture_size: opts.max_texture_size,
+        })
     }
 
     fn image_name_candidates(&self, image: usize) -> Vec<String> {
@@ -1462,8 +1580,14 @@ fn load_buffers<'a>(
     for (i, b) in root.buffers.iter().enumerate() {
         let what = format!("buffer {i}");
         let declared = to_usize(b.byte_length.0, &what)?;
+        if declared as u64 > MAX_FILE_BYTES {
+            return Err(invalid(format!(
+                "{what}: byteLength {declared} is above the {MAX_FILE_BYTES} bytes accepted"
+            )));
+        }
         let mut data: Cow<'a, [u8]> = match (&b.uri, bin) {
-            (Some(uri), _) => fetch(&what, uri, files)?,
+            // A buffer file may be padded, never much longer than declared.
+            (Some(uri), _) => fetch(&what, uri, files, declared as u64 + BUFFER_SLACK)?,
             (None, Some(bin)) if i == 0 => Cow::Borrowed(bin),
             (None, _) => {
                 return Err(invalid(format!(

@@ -10,9 +10,10 @@ pub mod load;
 pub mod rewrite;
 pub mod seams;
 
-pub use self::image::{Texture, TextureEncoding, TextureError};
+pub use self::image::{ImageHeader, Texture, TextureEncoding, TextureError};
 pub use load::{
-    load, load_from_memory, DirResolver, LoadError, LoadErrorKind, LoadOptions, NoFiles, Resolver,
+    load, load_from_memory, plan, plan_from_memory, DirResolver, LoadError, LoadErrorKind,
+    LoadOptions, NoFiles, Plan, PlannedTexture, Resolver,
 };
 pub use seams::{find_seams, SeamEdge, SeamSet, SilhouetteEdge};
 

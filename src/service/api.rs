@@ -18,12 +18,14 @@ use sha2::{Digest, Sha256};
 use tracing::Instrument;
 
 use super::app::{blocking, Shared, CANCELED};
-use super::engine;
+use super::data_dir;
+use super::engine::{self, Rejection};
 use super::error::{self, ApiError};
 use super::job::{self, is_job_id, now_ms, random_id, InputInfo, Job, JobState, Progress};
 use super::options::{JobOptions, QUERY_OPTIONS};
-use super::store::{keys, Submitted};
+use super::store::{keys, StoreError, Submitted};
 use super::upload::{base_name, safe_name, Bundle};
+use crate::budget::Limits;
 
 pub const OPENAPI: &str = include_str!("../../openapi.yaml");
 
@@ -495,6 +497,12 @@ async fn submit(
 
     let queue_size = app.cfg.queue_size;
     let max_texture_size = app.cfg.max_texture_size;
+    let limits = Limits {
+        max_memory: app.cfg.max_memory,
+    };
+    if storage_low(&app) {
+        return Err(StoreError::Full("free space under --min-free".into()).into());
+    }
     let outcome = blocking(&app, move |a| {
         job.input_key = bundle.key(&job.owner, &job.options);
         if let Some(earlier) = a.jobs.find_succeeded(&job.owner, &job.input_key)? {
@@ -506,18 +514,26 @@ async fn submit(
                 return Ok((submitted, job));
             }
         }
-        let load_opts = engine::load_options(&job.options, max_texture_size);
-        if let Err(e) = engine::validate(&bundle, &load_opts) {
-            return Err(if e.is_bad_input() {
-                ApiError::new(
+        match engine::validate(&bundle, &job.options, max_texture_size, &limits) {
+            Ok(_) => {}
+            Err(e @ Rejection::TooLarge { .. }) => {
+                return Err(ApiError::new(
+                    StatusCode::UNPROCESSABLE_ENTITY,
+                    "too_large",
+                    e.to_string(),
+                ));
+            }
+            Err(Rejection::Load(e)) if e.is_bad_input() => {
+                return Err(ApiError::new(
                     StatusCode::UNPROCESSABLE_ENTITY,
                     "invalid_model",
                     e.to_string(),
-                )
-            } else {
+                ));
+            }
+            Err(Rejection::Load(e)) => {
                 tracing::error!(error = %e, "cannot check the upload");
-                ApiError::internal("cannot check the upload")
-            });
+                return Err(ApiError::internal("cannot check the upload"));
+            }
         }
         a.files.put(&keys::input(&job.id), &bundle.encode())?;
         let submitted = a.jobs.submit(&job, queue_size)?;
@@ -774,12 +790,24 @@ async fn healthz() -> Response {
     Json(json!({ "status": "ok" })).into_response()
 }
 
+/// Whether the data folder's disk has less free space than it must keep.
+fn storage_low(app: &Shared) -> bool {
+    data_dir::free_space(&app.cfg.data).is_some_and(|free| free < app.cfg.min_free)
+}
+
 async fn readyz(State(app): State<Shared>) -> Result<Response, ApiError> {
     if !app.accepting.load(Ordering::Acquire) {
         return Err(ApiError::unavailable(
             "shutting_down",
             "the server is shutting down",
             5,
+        ));
+    }
+    if storage_low(&app) {
+        return Err(ApiError::unavailable(
+            "storage_low",
+            "the server's disk is nearly full",
+            60,
         ));
     }
     blocking(&app, |a| Ok(a.jobs.counts()?)).await?;

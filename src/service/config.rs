@@ -43,6 +43,12 @@ pub struct ServeArgs {
     /// Largest texture width or height, checked before decoding [default: 16384].
     #[arg(long, env = "SEAMSTRESS_MAX_TEXTURE_SIZE")]
     pub max_texture_size: Option<u32>,
+    /// Peak memory one job may use, e.g. 2GiB; uploads estimated above it
+    /// are refused with 422 too_large [default: the memory the server may
+    /// use (the machine's, or less under `ulimit -v` or a cgroup limit)
+    /// divided among the workers].
+    #[arg(long, env = "SEAMSTRESS_MAX_MEMORY")]
+    pub max_memory: Option<String>,
     /// Longest `Prefer: wait=N` honoured [default: 10m].
     #[arg(long, env = "SEAMSTRESS_MAX_WAIT")]
     pub max_wait: Option<String>,
@@ -53,6 +59,15 @@ pub struct ServeArgs {
     /// Allow listening beyond loopback without tokens.
     #[arg(long, env = "SEAMSTRESS_INSECURE_OPEN")]
     pub insecure_open: bool,
+    /// Free space on the data folder's disk below which /readyz answers 503
+    /// and uploads get 507, e.g. 256MiB [default: 256MiB].
+    #[arg(long, env = "SEAMSTRESS_MIN_FREE")]
+    pub min_free: Option<String>,
+    /// Start even though the job store is missing, empty or unreadable
+    /// while job folders exist beside it: those jobs and their files are
+    /// dropped. Without it such a server refuses to start.
+    #[arg(long)]
+    pub rebuild_store: bool,
 }
 
 /// The configuration file: the same options as [`ServeArgs`].
@@ -68,6 +83,8 @@ struct FileConfig {
     grace: Option<Quantity>,
     max_body: Option<Quantity>,
     max_texture_size: Option<u32>,
+    max_memory: Option<Quantity>,
+    min_free: Option<Quantity>,
     max_wait: Option<Quantity>,
     tokens: Option<Vec<String>>,
     insecure_open: Option<bool>,
@@ -126,26 +143,36 @@ pub struct Config {
     pub grace: Duration,
     pub max_body: usize,
     pub max_texture_size: u32,
+    /// Peak memory one job may use, bytes (the budget's limit).
+    pub max_memory: u64,
+    /// Free bytes the data folder's disk must keep (readiness, uploads).
+    pub min_free: u64,
     pub max_wait: Duration,
     pub tokens: Vec<Token>,
     pub insecure_open: bool,
+    /// Start afresh over a damaged job store (`--rebuild-store`).
+    pub rebuild_store: bool,
 }
 
 impl Default for Config {
     fn default() -> Self {
+        let workers = std::thread::available_parallelism().map_or(1, |n| n.get());
         Config {
             listen: "127.0.0.1:8080".into(),
             data: PathBuf::from("data"),
-            workers: std::thread::available_parallelism().map_or(1, |n| n.get()),
+            workers,
             queue_size: 64,
             job_timeout: Duration::from_secs(600),
             retention: Duration::from_secs(7 * 24 * 3600),
             grace: Duration::from_secs(30),
             max_body: 512 << 20,
             max_texture_size: 16384,
+            max_memory: crate::budget::usable_memory() / workers as u64,
+            min_free: 256 << 20,
             max_wait: Duration::from_secs(600),
             tokens: Vec::new(),
             insecure_open: false,
+            rebuild_store: false,
         }
     }
 }
@@ -180,15 +207,44 @@ impl Config {
             })?,
             None => d.max_body,
         };
+        let max_memory =
+            match args
+                .max_memory
+                .clone()
+                .or_else(|| file.max_memory.as_ref().map(Quantity::text))
+            {
+                Some(text) => Some(crate::budget::parse_bytes(&text).map_err(|message| {
+                    ConfigError::Invalid {
+                        option: "max_memory",
+                        message,
+                    }
+                })?),
+                None => None,
+            };
+        let min_free = match args
+            .min_free
+            .clone()
+            .or_else(|| file.min_free.as_ref().map(Quantity::text))
+        {
+            Some(text) => parse_size(&text).map_err(|message| ConfigError::Invalid {
+                option: "min_free",
+                message,
+            })? as u64,
+            None => d.min_free,
+        };
         let token_specs = if args.tokens.is_empty() {
             file.tokens.clone().unwrap_or_default()
         } else {
             args.tokens.clone()
         };
+        let workers = args.workers.or(file.workers).unwrap_or(d.workers);
         let cfg = Config {
             listen: args.listen.clone().or(file.listen).unwrap_or(d.listen),
             data: args.data.clone().or(file.data).unwrap_or(d.data),
-            workers: args.workers.or(file.workers).unwrap_or(d.workers),
+            workers,
+            // Every worker may run a job at its peak at once.
+            max_memory: max_memory
+                .unwrap_or_else(|| crate::budget::usable_memory() / workers.max(1) as u64),
             queue_size: args.queue_size.or(file.queue_size).unwrap_or(d.queue_size),
             job_timeout: duration("job_timeout", &args.job_timeout, &file.job_timeout)?
                 .unwrap_or(d.job_timeout),
@@ -196,6 +252,7 @@ impl Config {
                 .unwrap_or(d.retention),
             grace: duration("grace", &args.grace, &file.grace)?.unwrap_or(d.grace),
             max_body,
+            min_free,
             max_texture_size: args
                 .max_texture_size
                 .or(file.max_texture_size)
@@ -203,6 +260,7 @@ impl Config {
             max_wait: duration("max_wait", &args.max_wait, &file.max_wait)?.unwrap_or(d.max_wait),
             tokens: parse_tokens(&token_specs)?,
             insecure_open: args.insecure_open || file.insecure_open.unwrap_or(false),
+            rebuild_store: args.rebuild_store,
         };
         cfg.check()?;
         Ok(cfg)
@@ -336,24 +394,11 @@ pub fn parse_duration(text: &str) -> Result<Duration, String> {
         .ok_or_else(|| format!("{text:?} is too long"))
 }
 
-/// `1048576`, `64KiB`, `512MiB`, `2GiB` (also K, M, G, KB, MB, GB, all binary).
+/// `1048576`, `64KiB`, `512MiB`, `2GiB` (also K, M, G, T, KB, MB, ..., all
+/// binary): [`crate::budget::parse_bytes`] as a `usize`.
 pub fn parse_size(text: &str) -> Result<usize, String> {
-    let t = text.trim();
-    let split = t.find(|c: char| !c.is_ascii_digit()).unwrap_or(t.len());
-    let (num, unit) = t.split_at(split);
-    let n: u64 = num
-        .parse()
-        .map_err(|_| format!("{text:?} is not a size like 512MiB"))?;
-    let shift = match unit.trim().to_ascii_lowercase().as_str() {
-        "" | "b" => 0,
-        "k" | "kb" | "kib" => 10,
-        "m" | "mb" | "mib" => 20,
-        "g" | "gb" | "gib" => 30,
-        _ => return Err(format!("{text:?}: unknown unit (KiB, MiB or GiB)")),
-    };
-    n.checked_mul(1 << shift)
-        .and_then(|v| usize::try_from(v).ok())
-        .ok_or_else(|| format!("{text:?} is too large"))
+    let n = crate::budget::parse_bytes(text)?;
+    usize::try_from(n).map_err(|_| format!("{text:?} is too large"))
 }
 
 #[cfg(test)]
@@ -369,7 +414,7 @@ mod tests {
         assert!(parse_duration("m").is_err());
         assert_eq!(parse_size("512MiB").unwrap(), 512 << 20);
         assert_eq!(parse_size("10").unwrap(), 10);
-        assert!(parse_size("1TB").is_err());
+        assert!(parse_size("1XB").is_err());
     }
 
     #[test]

@@ -6,8 +6,9 @@ use std::time::Instant;
 
 use serde_json::value::RawValue;
 
+use crate::budget::{self, Limits, OverBudget};
 use crate::model::rewrite::rewrite_model;
-use crate::model::{self, LoadError, LoadErrorKind, LoadOptions, Model, TextureError};
+use crate::model::{self, LoadError, LoadOptions, Model, Plan};
 use crate::pipeline::{self, Output};
 
 use super::job::StageTimings;
@@ -26,6 +27,8 @@ pub enum Stop {
 pub enum EngineError {
     /// The upload is at fault: the loader's one-line message.
     BadInput(String),
+    /// Over the job budget (`too_large`).
+    TooLarge(String),
     /// The engine failed on a model it accepted.
     Failed(String),
     Stopped(Stop),
@@ -51,50 +54,37 @@ pub fn load_options(opts: &ResolvedOptions, max_texture_size: u32) -> LoadOption
     }
 }
 
-pub fn load(bundle: &Bundle, opts: &LoadOptions) -> Result<Model, LoadError> {
-    model::load_from_memory(&bundle.main_name, &bundle.main, &bundle.files, opts)
+/// Why an upload is refused before it is queued.
+#[derive(Debug, thiserror::Error)]
+pub enum Rejection {
+    #[error(transparent)]
+    Load(#[from] LoadError),
+    /// Over the job budget: `too_large`.
+    #[error("{file}: {over}")]
+    TooLarge { file: String, over: OverBudget },
 }
 
-/// Checks an upload the way loading does, short of decoding the pixels:
-/// containers, JSON, schema, buffers, accessors, URIs, and the first
-/// texture's header against the size limit. Decoding is most of a load's
-/// time, and the worker decodes anyway; an image that fails to decode
-/// fails the job instead.
-pub fn validate(bundle: &Bundle, opts: &LoadOptions) -> Result<(), LoadError> {
-    // With a limit of zero the loader stops at the first texture's header,
-    // after everything else has been checked.
-    let probe = LoadOptions {
-        max_texture_size: 0,
-        ..opts.clone()
-    };
-    match load(bundle, &probe) {
-        Ok(_) => Ok(()),
-        Err(LoadError {
-            file,
-            kind:
-                LoadErrorKind::Texture {
-                    image,
-                    source: TextureError::TooLarge { width, height, .. },
-                },
-        }) => {
-            let source = if width > opts.max_texture_size || height > opts.max_texture_size {
-                TextureError::TooLarge {
-                    width,
-                    height,
-                    limit: opts.max_texture_size,
-                }
-            } else if width == 0 || height == 0 {
-                TextureError::Empty { width, height }
-            } else {
-                return Ok(());
-            };
-            Err(LoadError {
-                file,
-                kind: LoadErrorKind::Texture { image, source },
-            })
-        }
-        Err(e) => Err(e),
-    }
+/// Checks an upload the way loading does, short of decoding the pixels
+/// (containers, JSON, schema, buffers, accessors, URIs, every image's
+/// header against the size limit), and holds the job to its budget.
+pub fn validate(
+    bundle: &Bundle,
+    opts: &ResolvedOptions,
+    max_texture_size: u32,
+    limits: &Limits,
+) -> Result<Plan, Rejection> {
+    let plan = model::plan_from_memory(
+        &bundle.main_name,
+        &bundle.main,
+        &bundle.files,
+        &load_options(opts, max_texture_size),
+    )?;
+    let need = budget::need(&plan, &process_options(opts));
+    budget::check(&need, limits).map_err(|over| Rejection::TooLarge {
+        file: plan.file().to_string(),
+        over,
+    })?;
+    Ok(plan)
 }
 
 /// Runs one job. `checkpoint` is called between stages with the stage and
@@ -103,18 +93,27 @@ pub fn run(
     bundle: &Bundle,
     opts: &ResolvedOptions,
     max_texture_size: u32,
+    limits: &Limits,
     checkpoint: &mut dyn FnMut(&str, f64) -> Result<(), Stop>,
 ) -> Result<Produced, EngineError> {
     let mut timings = StageTimings::default();
     checkpoint("load", 0.0).map_err(EngineError::Stopped)?;
     let t = Instant::now();
-    let mut model = load(bundle, &load_options(opts, max_texture_size)).map_err(|e| {
+    let load_failed = |e: LoadError| {
         if e.is_bad_input() {
             EngineError::BadInput(e.to_string())
         } else {
             EngineError::Failed(e.to_string())
         }
-    })?;
+    };
+    // The upload was held to the budget when it came; the limit may have
+    // been lowered since (a restart with other settings).
+    let plan = match validate(bundle, opts, max_texture_size, limits) {
+        Ok(plan) => plan,
+        Err(Rejection::Load(e)) => return Err(load_failed(e)),
+        Err(e @ Rejection::TooLarge { .. }) => return Err(EngineError::TooLarge(e.to_string())),
+    };
+    let mut model = plan.decode().map_err(load_failed)?;
     let load_ms = t.elapsed().as_millis() as u64;
     timings.load = Some(load_ms);
 

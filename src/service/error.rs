@@ -61,6 +61,17 @@ impl ApiError {
 
 impl From<StoreError> for ApiError {
     fn from(e: StoreError) -> Self {
+        if let StoreError::Full(_) = e {
+            tracing::error!(error = %e, "storage full");
+            return ApiError {
+                retry_after: Some(60),
+                ..Self::new(
+                    StatusCode::INSUFFICIENT_STORAGE,
+                    "storage_full",
+                    "the server's storage is full; try again later",
+                )
+            };
+        }
         tracing::error!(error = %e, "store failure");
         ApiError::internal("the job store failed; try again")
     }

@@ -15,7 +15,12 @@ pub struct LocalFileStore {
 const TMP_SUFFIX: &str = ".partial";
 
 fn io_err(what: &str, path: &Path, e: io::Error) -> StoreError {
-    StoreError::Files(format!("{what} {}: {e}", path.display()))
+    let message = format!("{what} {}: {e}", path.display());
+    if super::store::is_full(&e) {
+        StoreError::Full(message)
+    } else {
+        StoreError::Files(message)
+    }
 }
 
 impl LocalFileStore {

@@ -11,6 +11,7 @@
 mod api;
 mod app;
 pub mod config;
+mod data_dir;
 mod engine;
 mod error;
 pub mod files;

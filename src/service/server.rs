@@ -9,6 +9,7 @@ use std::time::Duration;
 
 use super::app::{App, Shared, SHUTTING_DOWN};
 use super::config::{Config, ConfigError, ServeArgs};
+use super::data_dir::{self, DataDirError, DataLock};
 use super::files::LocalFileStore;
 use super::job::{is_job_id, now_ms};
 use super::sqlite::SqliteJobStore;
@@ -21,6 +22,8 @@ pub enum ServeError {
     Config(#[from] ConfigError),
     #[error(transparent)]
     Store(#[from] StoreError),
+    #[error(transparent)]
+    DataDir(#[from] DataDirError),
     #[error("cannot listen on {addr}: {source}")]
     Listen {
         addr: String,
@@ -28,6 +31,18 @@ pub enum ServeError {
     },
     #[error("{0}")]
     Io(#[from] std::io::Error),
+}
+
+impl ServeError {
+    /// Whether the operator must change something (exit status 2): the
+    /// settings, the address, or the data folder; else the machine failed.
+    pub fn is_usage(&self) -> bool {
+        match self {
+            ServeError::Config(_) | ServeError::Listen { .. } => true,
+            ServeError::DataDir(e) => !matches!(e, DataDirError::Io { .. }),
+            ServeError::Store(_) | ServeError::Io(_) => false,
+        }
+    }
 }
 
 /// `seamstress serve`: runs until SIGTERM or SIGINT.
@@ -45,22 +60,29 @@ pub fn serve(args: ServeArgs) -> Result<(), ServeError> {
     result
 }
 
-/// The two stores a server runs on.
+/// The two stores a server runs on, and its hold on their folder.
 pub struct Stores {
     pub jobs: Arc<dyn JobStore>,
     pub files: Arc<dyn FileStore>,
+    pub lock: DataLock,
 }
 
-/// Opens the embedded stores under `cfg.data`. Other implementations of
-/// the traits plug in here.
+/// Opens the embedded stores under `cfg.data`, once no other server holds
+/// the folder and the job store is known to be the folder's own. Other
+/// implementations of the traits plug in here.
 pub fn open_stores(cfg: &Config) -> Result<Stores, ServeError> {
     std::fs::create_dir_all(&cfg.data)
         .map_err(|e| StoreError::Files(format!("cannot create {}: {e}", cfg.data.display())))?;
-    let jobs = SqliteJobStore::open(&cfg.data.join("jobs.sqlite3"))?;
-    let files = LocalFileStore::open(&cfg.data.join("files"))?;
+    let lock = data_dir::lock(&cfg.data)?;
+    let store = data_dir::store_path(&cfg.data);
+    let files_root = cfg.data.join("files");
+    data_dir::check_store(&store, &files_root.join("jobs"), cfg.rebuild_store)?;
+    let jobs = SqliteJobStore::open(&store)?;
+    let files = LocalFileStore::open(&files_root)?;
     Ok(Stores {
         jobs: Arc::new(jobs),
         files: Arc::new(files),
+        lock,
     })
 }
 
@@ -84,7 +106,11 @@ fn recover(jobs: &dyn JobStore, files: &dyn FileStore) -> Result<(), StoreError>
 }
 
 async fn run(cfg: Config, addrs: Vec<SocketAddr>) -> Result<(), ServeError> {
-    let Stores { jobs, files } = open_stores(&cfg)?;
+    let Stores {
+        jobs,
+        files,
+        lock: _lock,
+    } = open_stores(&cfg)?;
     {
         let (jobs, files) = (jobs.clone(), files.clone());
         tokio::task::spawn_blocking(move || recover(jobs.as_ref(), files.as_ref()))

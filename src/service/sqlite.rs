@@ -34,7 +34,10 @@ CREATE INDEX IF NOT EXISTS jobs_finished ON jobs(finished_ms);
 ";
 
 fn db_err(e: rusqlite::Error) -> StoreError {
-    StoreError::Jobs(e.to_string())
+    match e.sqlite_error_code() {
+        Some(rusqlite::ErrorCode::DiskFull) => StoreError::Full(e.to_string()),
+        _ => StoreError::Jobs(e.to_string()),
+    }
 }
 
 impl SqliteJobStore {

@@ -19,6 +19,26 @@ pub enum StoreError {
     Files(String),
     #[error("stored job {id} is unreadable: {message}")]
     Corrupt { id: String, message: String },
+    /// The disk (or quota) under a store is full: the client may retry later.
+    #[error("storage full: {0}")]
+    Full(String),
+}
+
+impl StoreError {
+    /// The job error code for a job that this error stopped.
+    pub fn job_code(&self) -> &'static str {
+        match self {
+            StoreError::Full(_) => "storage_full",
+            _ => "internal",
+        }
+    }
+}
+
+/// Whether an I/O error means the disk or quota is full.
+pub fn is_full(e: &std::io::Error) -> bool {
+    e.kind() == std::io::ErrorKind::StorageFull
+        || e.kind() == std::io::ErrorKind::QuotaExceeded
+        || matches!(e.raw_os_error(), Some(libc::ENOSPC) | Some(libc::EDQUOT))
 }
 
 /// The outcome of [`JobStore::submit`].
@@ -110,5 +130,8 @@ pub mod keys {
     }
     pub fn output(id: &str, name: &str) -> String {
         format!("jobs/{id}/out/{name}")
+    }
+    pub fn outputs(id: &str) -> String {
+        format!("jobs/{id}/out")
     }
 }

@@ -17,6 +17,7 @@ use super::engine::{self, EngineError, Stop};
 use super::job::{now_ms, FileEntry, Job, JobError, JobState, Progress};
 use super::store::{keys, StoreError};
 use super::upload::Bundle;
+use crate::budget::Limits;
 
 /// A job that has been started this many times without finishing (each
 /// start interrupted by a crash) fails instead of running again.
@@ -142,7 +143,18 @@ async fn run(app: &Shared, job: Job, thread: &JobThread) {
             Ok(Ok(Ok(state))) => {
                 tracing::info!(state = state.as_str(), "job ended");
             }
-            Ok(Ok(Err(e))) => tracing::error!(error = %e, "job store failed during the job"),
+            Ok(Ok(Err(e))) => {
+                tracing::error!(error = %e, "job store failed during the job");
+                let (task_app, job) = (app.clone(), snapshot);
+                let (code, message) = (e.job_code(), e.to_string());
+                let failed = tokio::task::spawn_blocking(move || {
+                    fail(&task_app, job, code, message, started)
+                })
+                .await;
+                if !matches!(failed, Ok(Ok(_))) {
+                    tracing::error!("cannot record the failure");
+                }
+            }
             // A bug, not the input's fault: the job fails as any failed job
             // does, rather than stay running for ever.
             Ok(Err(_)) | Err(_) => {
@@ -225,7 +237,16 @@ fn execute(app: &Shared, mut job: Job, flag: &AtomicU8) -> Result<JobState, Stor
                 }
             }
         };
-        engine::run(&bundle, &options, app.cfg.max_texture_size, &mut checkpoint)
+        let limits = Limits {
+            max_memory: app.cfg.max_memory,
+        };
+        engine::run(
+            &bundle,
+            &options,
+            app.cfg.max_texture_size,
+            &limits,
+            &mut checkpoint,
+        )
     };
     drop(bundle);
     match outcome {
@@ -240,7 +261,13 @@ fn execute(app: &Shared, mut job: Job, flag: &AtomicU8) -> Result<JobState, Stor
             let t = Instant::now();
             let mut files = Vec::with_capacity(produced.files.len());
             for (name, bytes) in &produced.files {
-                app.files.put(&keys::output(&job.id, name), bytes)?;
+                if let Err(e) = app.files.put(&keys::output(&job.id, name), bytes) {
+                    // No partial results, even should recording the
+                    // failure fail too (`fail` then removes the rest).
+                    let _ = app.files.delete_prefix(&keys::outputs(&job.id));
+                    let message = format!("cannot store the results: {e}");
+                    return fail(app, job, e.job_code(), message, started);
+                }
                 files.push(FileEntry {
                     name: name.clone(),
                     bytes: bytes.len() as u64,
@@ -268,6 +295,7 @@ fn execute(app: &Shared, mut job: Job, flag: &AtomicU8) -> Result<JobState, Stor
             finish(app, job, started)
         }
         Err(EngineError::BadInput(message)) => fail(app, job, "invalid_model", message, started),
+        Err(EngineError::TooLarge(message)) => fail(app, job, "too_large", message, started),
         Err(EngineError::Failed(message)) => fail(app, job, "processing_failed", message, started),
         Err(EngineError::Stopped(stop)) => stopped(app, job, stop),
     }

@@ -4,7 +4,11 @@
 
 pub mod server;
 
+use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
+
+use base64::Engine as _;
+use serde_json::Value;
 
 /// Set (as `.ci/run` does, after installing the tools) to make a missing
 /// outside tool fail the tests that need it instead of skipping them.
@@ -56,4 +60,42 @@ impl Tool {
         }
         runs
     }
+}
+
+/// Duck with its TEXCOORD_0 scaled by `scale` and shifted: REPEAT tiles the
+/// texture `scale` times along each axis.
+pub fn tiled_duck(scale: f32, dir: &Path) -> PathBuf {
+    let shared = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/assets");
+    let text = std::fs::read_to_string(shared.join("Duck/Duck.gltf")).unwrap();
+    let mut g: Value = serde_json::from_str(&text).unwrap();
+    let uri = g["buffers"][0]["uri"].as_str().unwrap().to_string();
+    let (head, data) = uri.split_once(',').unwrap();
+    let mut buf = base64::engine::general_purpose::STANDARD
+        .decode(data)
+        .unwrap();
+    let acc_index = g["meshes"][0]["primitives"][0]["attributes"]["TEXCOORD_0"]
+        .as_u64()
+        .unwrap() as usize;
+    let acc = g["accessors"][acc_index].clone();
+    let view = &g["bufferViews"][acc["bufferView"].as_u64().unwrap() as usize];
+    let start = view["byteOffset"].as_u64().unwrap_or(0) as usize
+        + acc["byteOffset"].as_u64().unwrap_or(0) as usize;
+    let stride = view["byteStride"].as_u64().unwrap_or(8) as usize;
+    for i in 0..acc["count"].as_u64().unwrap() as usize {
+        for c in 0..2 {
+            let o = start + i * stride + 4 * c;
+            let v = f32::from_le_bytes(buf[o..o + 4].try_into().unwrap());
+            buf[o..o + 4].copy_from_slice(&(v * scale - 1.4).to_le_bytes());
+        }
+    }
+    let acc = g["accessors"][acc_index].as_object_mut().unwrap();
+    acc.remove("min");
+    acc.remove("max");
+    g["buffers"][0]["uri"] = Value::String(format!(
+        "{head},{}",
+        base64::engine::general_purpose::STANDARD.encode(&buf)
+    ));
+    let path = dir.join(format!("duck_tiled_{scale}.gltf"));
+    std::fs::write(&path, serde_json::to_vec(&g).unwrap()).unwrap();
+    path
 }

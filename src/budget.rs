@@ -1,0 +1,361 @@
+//! What a job will cost, known from its [`Plan`] before any texel exists.
+//!
+//! A small file can ask for a great deal: a PNG of 65 KB may announce
+//! 8192² texels; one UV coordinate of 1e6 makes a seam cross millions of
+//! texel cells, each a quadrature piece, and a triangle spanning thousands of
+//! texture periods is rasterised over all of them. So before a job decodes
+//! anything, the quantities that drive its memory and time are counted from
+//! the image headers and the triangles' UVs (a pass over the edges and
+//! triangles, no texel touched), and the job is refused when one is over
+//! its limit, with the quantity, its value and the limit named.
+//!
+//! The memory estimate is a linear model over those quantities whose
+//! coefficients were measured (peak resident memory of the CLI on every
+//! shared model, `cargo bench --bench erase` prints both): the decoded
+//! inputs of every texture are held through the job, and one texture at a
+//! time is worked on.
+
+use std::fmt;
+
+use crate::model::{find_seams, Plan, PlannedTexture, UvTriangle};
+use crate::pipeline::ProcessOptions;
+use crate::seam::grid::TexelGrid;
+use crate::seam::quadrature::Segment;
+
+/// Quadrature points per seam piece: three Gauss points for the difference
+/// and three for the C1 term.
+const POINTS_PER_PIECE: u64 = 6;
+
+// The memory model: a least-squares fit (relative error) of the CLI's peak
+// resident memory on the shared models (blub, Fox, CesiumMan, Duck,
+// BoxTextured, cube_gradient_1024, WaterBottle; default options) over
+// three quantities: every texture's texels, held through the job; the
+// largest texture's texels, worked on (copies of the texels, classes,
+// charts, the solver's vectors and hierarchy); and its seam quadrature
+// points, which also stand for the band of unknowns along the seams.
+// Residuals −16% to +18%; `cargo bench --bench erase` prints the estimate
+// beside the measured peak.
+
+/// Bytes per texel of every texture (level 0; a third more with mips).
+const HELD_BYTES_PER_TEXEL: f64 = 13.6;
+/// Bytes per texel of the largest texture's level 0.
+const WORK_BYTES_PER_TEXEL: f64 = 117.2;
+/// Bytes per quadrature point of the largest texture's level 0.
+const WORK_BYTES_PER_POINT: f64 = 1430.0;
+/// The fit's intercept, and the least a job is estimated at.
+const INTERCEPT_BYTES: f64 = -11.6 * 1048576.0;
+const MIN_BYTES: f64 = 24.0 * 1048576.0;
+
+/// Triangles' bounding boxes may cover this many times a texture's texels
+/// (over all levels) before the job is refused: the shared models cover
+/// 1.5–12×, Duck with its UVs tiled 10 × 10 times 290×; one whose UVs span
+/// thousands of periods is refused in milliseconds instead of rasterised
+/// for minutes.
+pub const MAX_COVERAGE: u64 = 1024;
+
+/// Quadrature points allowed per texel: seams crossing this many cells per
+/// texel of the texture (over all levels) wrap around it many times over.
+pub const MAX_POINTS_PER_TEXEL: u64 = 16;
+
+/// What a job needs, summed over its textures and (with mips) levels.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+pub struct Need {
+    /// Texels of every level of every texture.
+    pub texels: u64,
+    /// Seam quadrature points over every level.
+    pub quadrature_points: u64,
+    /// Texel cells the triangles are rasterised over (bounding boxes,
+    /// clipped as the rasteriser clips them), every level.
+    pub covered_texels: u64,
+    /// Estimated peak memory, bytes.
+    pub memory_bytes: u64,
+}
+
+/// The limits a job is held to.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Limits {
+    /// Peak memory one job may use, bytes.
+    pub max_memory: u64,
+}
+
+/// A job over its budget: which quantity, how much, and the limit.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("{quantity} {value} is over the limit of {limit}{why}")]
+pub struct OverBudget {
+    pub quantity: &'static str,
+    pub value: String,
+    pub limit: String,
+    /// What usually causes it, with a leading separator, or empty.
+    pub why: &'static str,
+}
+
+/// Counts what `plan` will cost under `opts`.
+pub fn need(plan: &Plan, opts: &ProcessOptions) -> Need {
+    let mut total = Need::default();
+    let (mut held, mut work) = (0.0f64, 0.0f64);
+    for t in &plan.textures {
+        let (one, level0) = texture_need(t, opts.mips);
+        let mut texels = level0.texels as f64;
+        if opts.mips {
+            texels *= 4.0 / 3.0;
+        }
+        held += HELD_BYTES_PER_TEXEL * texels;
+        work = work.max(
+            WORK_BYTES_PER_TEXEL * level0.texels as f64
+                + WORK_BYTES_PER_POINT * level0.quadrature_points as f64,
+        );
+        total.texels = total.texels.saturating_add(one.texels);
+        total.quadrature_points = total
+            .quadrature_points
+            .saturating_add(one.quadrature_points);
+        total.covered_texels = total.covered_texels.saturating_add(one.covered_texels);
+    }
+    // Saturating float → integer: a hostile plan estimates at u64::MAX.
+    total.memory_bytes = (INTERCEPT_BYTES + held + work).max(MIN_BYTES) as u64;
+    total
+}
+
+/// Refuses a job whose need is over `limits`, or whose seams or triangles
+/// wrap around its textures far more often than any real model does.
+pub fn check(need: &Need, limits: &Limits) -> Result<(), OverBudget> {
+    if need.covered_texels > need.texels.saturating_mul(MAX_COVERAGE) {
+        return Err(OverBudget {
+            quantity: "texels covered by triangles",
+            value: need.covered_texels.to_string(),
+            limit: need.texels.saturating_mul(MAX_COVERAGE).to_string(),
+            why: " (1024 times the textures' texels: UVs span too many texture periods)",
+        });
+    }
+    let points_limit = need.texels.saturating_mul(MAX_POINTS_PER_TEXEL);
+    if need.quadrature_points > points_limit {
+        return Err(OverBudget {
+            quantity: "seam quadrature points",
+            value: need.quadrature_points.to_string(),
+            limit: points_limit.to_string(),
+            why: " (16 per texel: seams span too many texture periods)",
+        });
+    }
+    if need.memory_bytes > limits.max_memory {
+        return Err(OverBudget {
+            quantity: "estimated memory",
+            value: Bytes(need.memory_bytes).to_string(),
+            limit: Bytes(limits.max_memory).to_string(),
+            why: " (see --max-memory)",
+        });
+    }
+    Ok(())
+}
+
+/// One texture's quantities over the levels the job makes of it, and those
+/// of level 0 alone (`memory_bytes` left at zero).
+fn texture_need(t: &PlannedTexture, mips: bool) -> (Need, Need) {
+    let (mut w, mut h) = (t.header.width as usize, t.header.height as usize);
+    let mut need = Need::default();
+    let mut level0 = None;
+    loop {
+        let level = Need {
+            texels: (w * h) as u64,
+            covered_texels: covered(&t.triangles, w, h),
+            quadrature_points: quadrature_points(t, w, h),
+            memory_bytes: 0,
+        };
+        need.texels = need.texels.saturating_add(level.texels);
+        need.covered_texels = need.covered_texels.saturating_add(level.covered_texels);
+        need.quadrature_points = need
+            .quadrature_points
+            .saturating_add(level.quadrature_points);
+        let first = *level0.get_or_insert(level);
+        if !mips || (w == 1 && h == 1) {
+            return (need, first);
+        }
+        (w, h) = ((w / 2).max(1), (h / 2).max(1));
+    }
+}
+
+/// Cells the rasteriser visits: each triangle's texel bounding box, clipped
+/// to twice the texture per side as `seam::texels` clips it.
+fn covered(triangles: &[UvTriangle], w: usize, h: usize) -> u64 {
+    let span = |a: f64, b: f64, c: f64, n: usize| -> u64 {
+        let (lo, hi) = (a.min(b).min(c) * n as f64, a.max(b).max(c) * n as f64);
+        let cells = (hi.ceil() - lo.floor() + 1.0).max(1.0);
+        (cells.min(2.0 * n as f64 + 1.0)) as u64
+    };
+    triangles
+        .iter()
+        .map(|t| {
+            let [a, b, c] = t.uvs;
+            span(a[0], b[0], c[0], w).saturating_mul(span(a[1], b[1], c[1], h))
+        })
+        .fold(0u64, u64::saturating_add)
+}
+
+/// Quadrature points of every seam and silhouette at one level: one piece
+/// per cell crossing of either side, six points a piece.
+fn quadrature_points(t: &PlannedTexture, w: usize, h: usize) -> u64 {
+    let grid = TexelGrid {
+        width: w,
+        height: h,
+        wrap_s: t.wrap_s,
+        wrap_t: t.wrap_t,
+    };
+    let seams = find_seams(&t.triangles, w, h);
+    let pieces = |uv: [[f64; 2]; 2]| crossings(Segment::from_uv(&grid, uv));
+    let seam_pieces = seams
+        .seams
+        .iter()
+        .map(|s| 1u64.saturating_add(pieces(s.a)).saturating_add(pieces(s.b)))
+        .fold(0u64, u64::saturating_add);
+    let silhouette_pieces = seams
+        .silhouettes
+        .iter()
+        .map(|s| 1u64.saturating_add(pieces(s.uv)))
+        .fold(0u64, u64::saturating_add);
+    seam_pieces
+        .saturating_add(silhouette_pieces)
+        .saturating_mul(POINTS_PER_PIECE)
+}
+
+/// Integer x or y lines a segment crosses.
+fn crossings(s: Segment) -> u64 {
+    (0..2)
+        .map(|axis| {
+            let (a, b) = (s.start[axis], s.end[axis]);
+            let (lo, hi) = (a.min(b), a.max(b));
+            // Integers k with lo < k < hi; saturating casts keep 1e300 finite.
+            (hi.ceil() - lo.floor() - 1.0).max(0.0) as u64
+        })
+        .fold(0u64, u64::saturating_add)
+}
+
+/// Bytes as people read them: "3.1 GiB".
+pub struct Bytes(pub u64);
+
+impl fmt::Display for Bytes {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        const UNITS: [&str; 5] = ["B", "KiB", "MiB", "GiB", "TiB"];
+        let mut v = self.0 as f64;
+        let mut unit = 0;
+        while v >= 1024.0 && unit + 1 < UNITS.len() {
+            v /= 1024.0;
+            unit += 1;
+        }
+        if unit == 0 {
+            write!(f, "{} B", self.0)
+        } else {
+            write!(f, "{v:.1} {}", UNITS[unit])
+        }
+    }
+}
+
+/// Parses "512M", "4G", "4GiB", "1.5g" or a plain number of bytes.
+pub fn parse_bytes(s: &str) -> Result<u64, String> {
+    let t = s.trim();
+    let split = t
+        .find(|c: char| !(c.is_ascii_digit() || c == '.'))
+        .unwrap_or(t.len());
+    let (num, unit) = t.split_at(split);
+    let value: f64 = num
+        .parse()
+        .map_err(|_| format!("{s:?} is not an amount of memory (e.g. 512M, 4G)"))?;
+    let scale: u64 = match unit.trim().to_ascii_lowercase().as_str() {
+        "" | "b" => 1,
+        "k" | "kb" | "kib" => 1 << 10,
+        "m" | "mb" | "mib" => 1 << 20,
+        "g" | "gb" | "gib" => 1 << 30,
+        "t" | "tb" | "tib" => 1 << 40,
+        _ => return Err(format!("{s:?}: unknown unit (use K, M, G or T)")),
+    };
+    let bytes = value * scale as f64;
+    if !bytes.is_finite() || bytes < 1.0 || bytes > u64::MAX as f64 {
+        return Err(format!("{s:?} is not a usable amount of memory"));
+    }
+    Ok(bytes as u64)
+}
+
+/// The memory this process may really use: the machine's, or less under an
+/// address-space limit (`ulimit -v`) or a container's cgroup limit.
+pub fn usable_memory() -> u64 {
+    let mut limit = machine_memory().unwrap_or(u64::MAX);
+    if let Some(cg) = cgroup_limit() {
+        limit = limit.min(cg);
+    }
+    if let Some(rl) = address_space_limit() {
+        // Address space is not resident memory: code, thread stacks and
+        // allocator reservations take some that is never touched.
+        limit = limit.min(rl / 4 * 3);
+    }
+    limit
+}
+
+fn machine_memory() -> Option<u64> {
+    let info = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let kb = info
+        .lines()
+        .find_map(|l| l.strip_prefix("MemTotal:"))?
+        .trim()
+        .trim_end_matches("kB")
+        .trim()
+        .parse::<u64>()
+        .ok()?;
+    Some(kb * 1024)
+}
+
+fn cgroup_limit() -> Option<u64> {
+    // cgroup v2, then v1; "max" or absurd values mean no limit.
+    for path in [
+        "/sys/fs/cgroup/memory.max",
+        "/sys/fs/cgroup/memory/memory.limit_in_bytes",
+    ] {
+        if let Ok(text) = std::fs::read_to_string(path) {
+            if let Ok(v) = text.trim().parse::<u64>() {
+                if v < (1 << 60) {
+                    return Some(v);
+                }
+            }
+        }
+    }
+    None
+}
+
+fn address_space_limit() -> Option<u64> {
+    let mut rl = libc::rlimit {
+        rlim_cur: 0,
+        rlim_max: 0,
+    };
+    // SAFETY: getrlimit writes into the struct we own and reads nothing else.
+    let ok = unsafe { libc::getrlimit(libc::RLIMIT_AS, &mut rl) } == 0;
+    (ok && rl.rlim_cur != libc::RLIM_INFINITY).then_some(rl.rlim_cur)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn crossings_count_integer_lines_strictly_inside() {
+        let s = |a: [f64; 2], b: [f64; 2]| Segment { start: a, end: b };
+        assert_eq!(crossings(s([0.5, 0.5], [0.7, 0.9])), 0);
+        assert_eq!(crossings(s([0.5, 0.5], [3.5, 0.5])), 3);
+        assert_eq!(crossings(s([1.0, 0.5], [3.0, 0.5])), 1);
+        assert_eq!(crossings(s([-2.5, -1.5], [2.5, 1.5])), 5 + 3);
+        assert_eq!(crossings(s([-1e300, 0.0], [1e300, 0.0])), u64::MAX);
+    }
+
+    #[test]
+    fn bytes_parse_and_print() {
+        assert_eq!(parse_bytes("512M"), Ok(512 << 20));
+        assert_eq!(parse_bytes("4G"), Ok(4 << 30));
+        assert_eq!(parse_bytes("1.5GiB"), Ok(3 << 29));
+        assert_eq!(parse_bytes("1000"), Ok(1000));
+        assert!(parse_bytes("lots").is_err());
+        assert!(parse_bytes("4X").is_err());
+        assert!(parse_bytes("0").is_err());
+        assert_eq!(Bytes(3 << 29).to_string(), "1.5 GiB");
+        assert_eq!(Bytes(12).to_string(), "12 B");
+    }
+
+    #[test]
+    fn usable_memory_is_positive() {
+        assert!(usable_memory() > 0);
+    }
+}

@@ -1,0 +1,171 @@
+//! Hostile and unlucky inputs through the `seamstress` binary: models that
+//! ask for unbounded memory or time are refused before the work, with the
+//! quantity, its value and the limit named, and exit status 2.
+
+use std::os::unix::process::CommandExt;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+use serde_json::Value;
+
+mod common;
+
+fn shared() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/assets")
+}
+
+fn scratch(name: &str) -> PathBuf {
+    let dir =
+        std::env::temp_dir().join(format!("seamstress-hostile-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+fn seamstress(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_seamstress"))
+        .args(args)
+        .output()
+        .expect("seamstress runs")
+}
+
+/// CRC-32 (PNG's) of a chunk's type and data.
+fn crc32(bytes: &[u8]) -> u32 {
+    let mut c = !0u32;
+    for &b in bytes {
+        c ^= u32::from(b);
+        for _ in 0..8 {
+            c = if c & 1 != 0 {
+                0xEDB8_8320 ^ (c >> 1)
+            } else {
+                c >> 1
+            };
+        }
+    }
+    !c
+}
+
+/// BoxTextured with its PNG replaced by one whose header announces
+/// `side`×`side` texels, followed by 64 KiB of image data that is not a
+/// valid zlib stream: the header is all a budget may read.
+fn box_announcing(side: u32, dir: &Path) -> PathBuf {
+    let src = shared().join("BoxTextured/BoxTextured-glTF");
+    for f in ["BoxTextured.gltf", "BoxTextured0.bin"] {
+        std::fs::copy(src.join(f), dir.join(f)).unwrap();
+    }
+    let mut png = b"\x89PNG\r\n\x1a\n".to_vec();
+    let mut ihdr = b"IHDR".to_vec();
+    ihdr.extend(side.to_be_bytes());
+    ihdr.extend(side.to_be_bytes());
+    ihdr.extend([8, 2, 0, 0, 0]); // 8-bit RGB
+    let mut idat = b"IDAT".to_vec();
+    idat.extend(vec![0u8; 64 << 10]);
+    for chunk in [&ihdr, &idat, &b"IEND".to_vec()] {
+        png.extend((chunk.len() as u32 - 4).to_be_bytes());
+        png.extend(chunk.iter());
+        png.extend(crc32(chunk).to_be_bytes());
+    }
+    std::fs::write(dir.join("CesiumLogoFlat.png"), png).unwrap();
+    dir.join("BoxTextured.gltf")
+}
+
+fn refused(o: &std::process::Output, quantity: &str, file: &Path) {
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains(quantity), "{err}");
+    assert!(err.contains("over the limit of"), "{err}");
+    assert!(
+        err.contains(file.file_name().unwrap().to_str().unwrap()),
+        "{err}"
+    );
+    assert_eq!(err.trim().lines().count(), 1, "{err}");
+}
+
+#[test]
+fn uvs_spanning_many_periods_are_refused_at_once() {
+    let dir = scratch("tiled");
+    let model = common::tiled_duck(1000.0, &dir);
+    let t = Instant::now();
+    let o = seamstress(&[
+        "process",
+        model.to_str().unwrap(),
+        "--out",
+        dir.join("out").to_str().unwrap(),
+    ]);
+    refused(&o, "texels covered by triangles", &model);
+    assert!(t.elapsed() < Duration::from_secs(20), "{:?}", t.elapsed());
+    assert!(!dir.join("out/report.json").exists());
+}
+
+#[test]
+fn a_modest_tiling_still_runs() {
+    let dir = scratch("tiled2");
+    let model = common::tiled_duck(2.0, &dir);
+    let o = seamstress(&[
+        "process",
+        model.to_str().unwrap(),
+        "--out",
+        dir.join("out").to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let report: Value =
+        serde_json::from_slice(&std::fs::read(dir.join("out/report.json")).unwrap()).unwrap();
+    let t = &report["textures"][0];
+    assert!(
+        t["erased"]["seam_rms_closed"].as_f64().unwrap()
+            < 0.5 * t["input"]["seam_rms_closed"].as_f64().unwrap()
+    );
+}
+
+#[test]
+fn an_image_announcing_more_than_the_memory_limit_is_refused_before_decoding() {
+    let dir = scratch("announce");
+    let model = box_announcing(8192, &dir);
+    let o = seamstress(&[
+        "process",
+        model.to_str().unwrap(),
+        "--out",
+        dir.join("out").to_str().unwrap(),
+        "--max-memory",
+        "1G",
+    ]);
+    refused(&o, "estimated memory", &model);
+    assert!(String::from_utf8_lossy(&o.stderr).contains("1.0 GiB"));
+}
+
+#[test]
+fn the_default_limit_follows_the_address_space_limit() {
+    let dir = scratch("rlimit");
+    let model = box_announcing(8192, &dir);
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_seamstress"));
+    cmd.args([
+        "process",
+        model.to_str().unwrap(),
+        "--out",
+        dir.join("out").to_str().unwrap(),
+    ]);
+    // SAFETY: setrlimit is async-signal-safe and touches only this child.
+    unsafe {
+        cmd.pre_exec(|| {
+            let lim = libc::rlimit {
+                rlim_cur: 2 << 30,
+                rlim_max: 2 << 30,
+            };
+            if libc::setrlimit(libc::RLIMIT_AS, &lim) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            Ok(())
+        });
+    }
+    let o = cmd.output().expect("seamstress runs");
+    refused(&o, "estimated memory", &model);
+}
+
+#[test]
+fn bad_memory_limits_are_usage_errors() {
+    for bad in ["lots", "0", "4X"] {
+        let o = seamstress(&["process", "x.glb", "--out", "o", "--max-memory", bad]);
+        assert_eq!(o.status.code(), Some(2), "{bad}");
+    }
+}
