@@ -6,6 +6,10 @@
 //! in a child process of its own, so "peak MB" (the kernel's high-water mark
 //! of resident memory, VmHWM) belongs to that run alone. Each row is the
 //! median of [`RUNS`] runs by erase time.
+//!
+//! A second table runs the whole default job (as `seamstress process`) on
+//! every shared model, one child each, and prints the budget's estimate of
+//! its peak memory beside the measured peak: the budget must be honest.
 
 use std::path::PathBuf;
 use std::process::Command;
@@ -81,10 +85,80 @@ fn child(rel: &str, mode: Mode, erase_all: bool) {
     );
 }
 
+/// Every shared model, for the budget table.
+const JOB_MODELS: [&str; 9] = [
+    "blub/blub.glb",
+    "Fox/Fox.gltf",
+    "CesiumMan/CesiumMan.gltf",
+    "Duck/Duck.gltf",
+    "BoxTextured/BoxTextured-glTF-Binary/BoxTextured.glb",
+    "cube/cube_gradient_1024.glb",
+    "cube/cube_gradient_128.glb",
+    "WaterBottle/WaterBottle.gltf",
+    "TextureTransformTest/TextureTransformTest.gltf",
+];
+
+/// Runs the default job on one model in this process: estimate, then peak.
+fn job_child(rel: &str) {
+    let opts = ProcessOptions::default();
+    let plan = match model::plan(&asset(rel), &LoadOptions::default()) {
+        Ok(p) => p,
+        Err(e) => {
+            println!("ERR\t{e}");
+            return;
+        }
+    };
+    let need = seamstress::budget::need(&plan, &opts);
+    let result = plan
+        .decode()
+        .map_err(|e| e.to_string())
+        .and_then(|m| pipeline::run(&m, rel, 0, &opts).map_err(|e| e.to_string()));
+    match result {
+        Ok(_) => println!(
+            "OK\t{:.1}\t{:.1}",
+            need.memory_bytes as f64 / 1048576.0,
+            peak_rss_mb()
+        ),
+        Err(e) => println!("ERR\t{e}"),
+    }
+}
+
+fn budget_table(exe: &std::path::Path) {
+    println!("\nThe budget: estimated against measured peak memory of the default job");
+    println!(
+        "{:<40} {:>10} {:>10} {:>8}",
+        "model", "est. MB", "peak MB", "est/peak"
+    );
+    for rel in JOB_MODELS {
+        let out = Command::new(exe)
+            .args(["--job", rel])
+            .output()
+            .expect("child runs");
+        let text = String::from_utf8_lossy(&out.stdout);
+        let f: Vec<&str> = text
+            .lines()
+            .find(|l| l.starts_with("OK") || l.starts_with("ERR"))
+            .map(|l| l.split('\t').collect())
+            .unwrap_or_default();
+        let name = rel.rsplit('/').next().unwrap_or(rel);
+        match f.as_slice() {
+            ["OK", est, peak] => {
+                let (e, p): (f64, f64) = (est.parse().unwrap_or(0.0), peak.parse().unwrap_or(1.0));
+                println!("{name:<40} {e:>10.1} {p:>10.1} {:>8.2}", e / p);
+            }
+            other => println!("{name:<40} failed: {other:?}"),
+        }
+    }
+}
+
 fn main() {
     // As the binary does.
     seamstress::heap::retain_freed_memory();
     let args: Vec<String> = std::env::args().collect();
+    if let Some(i) = args.iter().position(|a| a == "--job") {
+        job_child(&args[i + 1]);
+        return;
+    }
     if let Some(i) = args.iter().position(|a| a == "--child") {
         let mode = if args[i + 2] == "global" {
             Mode::Global
@@ -95,6 +169,11 @@ fn main() {
         return;
     }
     let exe = std::env::current_exe().expect("own path");
+    // `cargo bench --bench erase -- budget`: the budget table alone.
+    if args.iter().any(|a| a == "budget") {
+        budget_table(&exe);
+        return;
+    }
     println!(
         "{:<16} {:<6} {:<6} {:>7} {:>8} {:>9} {:>9} {:>10} {:>7} {:>8} {:>9} {:>10} {:>8} {:>7} {:>10} {:>9}",
         "model",
@@ -158,4 +237,5 @@ fn main() {
     println!("or all closed; closed: their share of the seam length; closed rms: erased");
     println!("seam_rms over them; worst dB: the lowest PSNR of any UV chart.");
     println!("Goals (local mode, 2048²): erase < 1000 ms, peak < 1024 MB.");
+    budget_table(&exe);
 }

@@ -38,6 +38,12 @@ enum Command {
     Process(ProcessArgs),
     /// Run the HTTP service: a durable job queue and a worker pool over the engine.
     Serve(Box<seamstress::service::ServeArgs>),
+    /// One job of a server's worker, in a process of its own.
+    #[command(hide = true)]
+    RunJob {
+        /// The job's scratch folder, as the worker prepared it.
+        dir: PathBuf,
+    },
 }
 
 #[derive(clap::Args)]
@@ -107,7 +113,7 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     // A one-shot command stays quiet; a service logs every request and job.
     let default_level = match cli.command {
-        Command::Process(_) => "warn",
+        Command::Process(_) | Command::RunJob { .. } => "warn",
         Command::Serve(_) => "info",
     };
     init_logging(cli.log_format, default_level);
@@ -120,6 +126,13 @@ fn main() -> ExitCode {
             }
             Err(Failure::Internal(e)) => {
                 eprintln!("error: {e:#}");
+                ExitCode::from(1)
+            }
+        },
+        Command::RunJob { dir } => match seamstress::service::run_job(&dir) {
+            Ok(()) => ExitCode::SUCCESS,
+            Err(e) => {
+                eprintln!("error: {}: {e}", dir.display());
                 ExitCode::from(1)
             }
         },

@@ -1135,3 +1135,33 @@ async fn a_full_disk_fails_cleanly_and_says_so() {
     s.kill();
     drop(disk);
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_that_runs_out_of_memory_fails_alone() {
+    let data = scratch("poison");
+    // Each job process may map 400 MiB: far too little for Fox's 2048²
+    // texture, plenty for a 128² cube.
+    let mut s = Server::start(&data, &["--workers", "2", "--job-address-space", "400M"]);
+    let c = client();
+    let fox = accepted(submit_form(&c, &s, form_for(&assets().join("Fox/Fox.gltf"))).await).await;
+    let small = std::fs::read(assets().join("cube/cube_gradient_128.glb")).unwrap();
+    let cube = accepted(submit_raw(&c, &s, small, "small.glb", "").await).await;
+    let cube = finish(&c, &s, cube["id"].as_str().unwrap()).await;
+    assert_eq!(cube["state"], "succeeded", "{cube}");
+    let fox = finish(&c, &s, fox["id"].as_str().unwrap()).await;
+    assert_eq!(fox["state"], "failed", "{fox}");
+    let code = fox["error"]["code"].as_str().unwrap();
+    assert!(matches!(code, "too_large" | "crashed"), "{fox}");
+    assert!(fox["files"].as_array().unwrap().is_empty(), "{fox}");
+    // The same server answered throughout.
+    let (status, _) = json_of(get(&c, &s, "/readyz").await).await;
+    assert_eq!(status, StatusCode::OK);
+    assert!(s.child.try_wait().unwrap().is_none(), "the server died");
+    assert!(
+        !data.join("tmp").exists()
+            || std::fs::read_dir(data.join("tmp"))
+                .unwrap()
+                .next()
+                .is_none()
+    );
+}

@@ -59,6 +59,11 @@ pub struct ServeArgs {
     /// Allow listening beyond loopback without tokens.
     #[arg(long, env = "SEAMSTRESS_INSECURE_OPEN")]
     pub insecure_open: bool,
+    /// Address space each job's process may map, e.g. 8GiB; a job that
+    /// needs more fails with too_large [default: twice --max-memory, at
+    /// least 2GiB more than it].
+    #[arg(long, env = "SEAMSTRESS_JOB_ADDRESS_SPACE")]
+    pub job_address_space: Option<String>,
     /// Free space on the data folder's disk below which /readyz answers 503
     /// and uploads get 507, e.g. 256MiB [default: 256MiB].
     #[arg(long, env = "SEAMSTRESS_MIN_FREE")]
@@ -84,6 +89,7 @@ struct FileConfig {
     max_body: Option<Quantity>,
     max_texture_size: Option<u32>,
     max_memory: Option<Quantity>,
+    job_address_space: Option<Quantity>,
     min_free: Option<Quantity>,
     max_wait: Option<Quantity>,
     tokens: Option<Vec<String>>,
@@ -145,6 +151,8 @@ pub struct Config {
     pub max_texture_size: u32,
     /// Peak memory one job may use, bytes (the budget's limit).
     pub max_memory: u64,
+    /// Address space of one job's process, bytes.
+    pub job_address_space: u64,
     /// Free bytes the data folder's disk must keep (readiness, uploads).
     pub min_free: u64,
     pub max_wait: Duration,
@@ -168,6 +176,7 @@ impl Default for Config {
             max_body: 512 << 20,
             max_texture_size: 16384,
             max_memory: crate::budget::usable_memory() / workers as u64,
+            job_address_space: address_space_for(crate::budget::usable_memory() / workers as u64),
             min_free: 256 << 20,
             max_wait: Duration::from_secs(600),
             tokens: Vec::new(),
@@ -221,6 +230,17 @@ impl Config {
                 })?),
                 None => None,
             };
+        let job_address_space = match args
+            .job_address_space
+            .clone()
+            .or_else(|| file.job_address_space.as_ref().map(Quantity::text))
+        {
+            Some(text) => Some(parse_size(&text).map_err(|message| ConfigError::Invalid {
+                option: "job_address_space",
+                message,
+            })? as u64),
+            None => None,
+        };
         let min_free = match args
             .min_free
             .clone()
@@ -245,6 +265,7 @@ impl Config {
             // Every worker may run a job at its peak at once.
             max_memory: max_memory
                 .unwrap_or_else(|| crate::budget::usable_memory() / workers.max(1) as u64),
+            job_address_space: 0,
             queue_size: args.queue_size.or(file.queue_size).unwrap_or(d.queue_size),
             job_timeout: duration("job_timeout", &args.job_timeout, &file.job_timeout)?
                 .unwrap_or(d.job_timeout),
@@ -262,6 +283,9 @@ impl Config {
             insecure_open: args.insecure_open || file.insecure_open.unwrap_or(false),
             rebuild_store: args.rebuild_store,
         };
+        let mut cfg = cfg;
+        cfg.job_address_space =
+            job_address_space.unwrap_or_else(|| address_space_for(cfg.max_memory));
         cfg.check()?;
         Ok(cfg)
     }
@@ -392,6 +416,15 @@ pub fn parse_duration(text: &str) -> Result<Duration, String> {
     n.checked_mul(scale)
         .map(Duration::from_secs)
         .ok_or_else(|| format!("{text:?} is too long"))
+}
+
+/// The address space a job process gets by default: its memory budget
+/// twice over, and at least 2 GiB more (code, thread stacks and allocator
+/// reservations are mapped but mostly never touched).
+fn address_space_for(max_memory: u64) -> u64 {
+    max_memory
+        .saturating_mul(2)
+        .max(max_memory.saturating_add(2 << 30))
 }
 
 /// `1048576`, `64KiB`, `512MiB`, `2GiB` (also K, M, G, T, KB, MB, ..., all

@@ -31,6 +31,8 @@ pub enum EngineError {
     TooLarge(String),
     /// The engine failed on a model it accepted.
     Failed(String),
+    /// The job's process died without an outcome (`crashed`).
+    Crashed(String),
     Stopped(Stop),
 }
 

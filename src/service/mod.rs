@@ -15,6 +15,7 @@ mod data_dir;
 mod engine;
 mod error;
 pub mod files;
+mod isolate;
 pub mod job;
 mod metrics;
 pub mod options;
@@ -26,6 +27,12 @@ mod worker;
 
 pub use config::{Config, ServeArgs};
 pub use server::{serve, ServeError};
+
+/// `seamstress run-job DIR`: one job in a process of its own, for a
+/// server's worker (see `service/isolate.rs`).
+pub fn run_job(dir: &std::path::Path) -> std::io::Result<()> {
+    isolate::child(dir)
+}
 
 /// Every route as (method, path), paths in OpenAPI syntax: what
 /// `openapi.yaml` must describe.

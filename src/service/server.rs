@@ -77,6 +77,8 @@ pub fn open_stores(cfg: &Config) -> Result<Stores, ServeError> {
     let store = data_dir::store_path(&cfg.data);
     let files_root = cfg.data.join("files");
     data_dir::check_store(&store, &files_root.join("jobs"), cfg.rebuild_store)?;
+    // Scratch folders of job processes that a crash left behind.
+    let _ = std::fs::remove_dir_all(cfg.data.join("tmp"));
     let jobs = SqliteJobStore::open(&store)?;
     let files = LocalFileStore::open(&files_root)?;
     Ok(Stores {

@@ -13,10 +13,10 @@ use tracing::Instrument;
 
 use super::app::{stop_of, Shared, RUN, TIMED_OUT};
 use super::config::hex;
-use super::engine::{self, EngineError, Stop};
+use super::engine::{EngineError, Stop};
+use super::isolate::{self, Isolation};
 use super::job::{now_ms, FileEntry, Job, JobError, JobState, Progress};
 use super::store::{keys, StoreError};
-use super::upload::Bundle;
 use crate::budget::Limits;
 
 /// A job that has been started this many times without finishing (each
@@ -210,18 +210,43 @@ fn execute(app: &Shared, mut job: Job, flag: &AtomicU8) -> Result<JobState, Stor
             return finish(app, job, started);
         }
     }
-    let bundle = match app.files.get(&keys::input(&job.id))? {
-        Some(bytes) => Bundle::decode(&bytes),
-        None => Err("the upload is missing from the file store".into()),
-    };
-    let bundle = match bundle {
-        Ok(b) => b,
-        Err(message) => {
-            return fail(app, job, "internal", message, started);
-        }
+    let Some(upload) = app.files.get(&keys::input(&job.id))? else {
+        return fail(
+            app,
+            job,
+            "internal",
+            "the upload is missing from the file store",
+            started,
+        );
     };
     let options = job.options.clone();
-    let outcome = {
+    let limits = Limits {
+        max_memory: app.cfg.max_memory,
+    };
+    let iso = Isolation {
+        exe: match std::env::current_exe() {
+            Ok(exe) => exe,
+            Err(e) => {
+                return fail(
+                    app,
+                    job,
+                    "internal",
+                    format!("cannot find the binary: {e}"),
+                    started,
+                )
+            }
+        },
+        address_space: app.cfg.job_address_space,
+        scratch: app.cfg.data.join("tmp"),
+    };
+    let mut outcome = Err(EngineError::Crashed(String::new()));
+    // A job process that dies is tried once more: a crash may be the
+    // machine's (the OOM killer, a signal), not the input's.
+    for attempt in 0..2 {
+        if attempt > 0 {
+            tracing::warn!(attempt, "job process crashed; trying once more");
+        }
+        let tag = format!("{}-{attempt}", job.id);
         let mut checkpoint = |stage: &str, fraction: f64| -> Result<(), Stop> {
             if let Some(stop) = stop_of(flag) {
                 return Err(stop);
@@ -237,18 +262,21 @@ fn execute(app: &Shared, mut job: Job, flag: &AtomicU8) -> Result<JobState, Stor
                 }
             }
         };
-        let limits = Limits {
-            max_memory: app.cfg.max_memory,
-        };
-        engine::run(
-            &bundle,
+        outcome = isolate::run(
+            &iso,
+            &tag,
+            &upload,
             &options,
             app.cfg.max_texture_size,
             &limits,
             &mut checkpoint,
-        )
-    };
-    drop(bundle);
+            &|| stop_of(flag),
+        );
+        if !matches!(outcome, Err(EngineError::Crashed(_))) {
+            break;
+        }
+    }
+    drop(upload);
     match outcome {
         Ok(produced) => {
             if let Some(stop) = stop_of(flag) {
@@ -296,6 +324,7 @@ fn execute(app: &Shared, mut job: Job, flag: &AtomicU8) -> Result<JobState, Stor
         }
         Err(EngineError::BadInput(message)) => fail(app, job, "invalid_model", message, started),
         Err(EngineError::TooLarge(message)) => fail(app, job, "too_large", message, started),
+        Err(EngineError::Crashed(message)) => fail(app, job, "crashed", message, started),
         Err(EngineError::Failed(message)) => fail(app, job, "processing_failed", message, started),
         Err(EngineError::Stopped(stop)) => stopped(app, job, stop),
     }

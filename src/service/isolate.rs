@@ -1,0 +1,319 @@
+//! Each job in a process of its own, so that its crash or its running out
+//! of memory cannot take the server, or any other job, with it.
+//!
+//! The worker writes the upload and the options into a scratch folder and
+//! starts `seamstress run-job` on it under an address-space limit
+//! (`setrlimit(RLIMIT_AS)`, so an allocation past it fails in the child
+//! instead of the kernel killing whatever process it likes). The child runs
+//! [`engine::run`] and reports on standard output, one JSON event a line:
+//! progress, then the outcome, whose files it has written beside the input.
+//! The worker relays progress to the job store, and stops the child
+//! (SIGKILL) on a cancel, the time limit or shutdown. A child that ends
+//! without an outcome has crashed: the worker's caller retries it once.
+
+use std::io::{BufRead, BufReader, Read};
+use std::os::unix::process::{CommandExt, ExitStatusExt};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::sync::mpsc;
+use std::time::Duration;
+
+use serde::{Deserialize, Serialize};
+use serde_json::value::RawValue;
+
+use crate::budget::Limits;
+
+use super::engine::{self, EngineError, Produced, Stop};
+use super::job::StageTimings;
+use super::options::ResolvedOptions;
+use super::upload::Bundle;
+
+/// How often a waiting worker looks for a cancel or the time limit.
+const POLL: Duration = Duration::from_millis(50);
+
+/// The most of a crashed child's standard error kept for its message.
+const STDERR_TAIL: usize = 2048;
+
+/// What the child tells the worker, a line each.
+// Externally tagged: an internally tagged enum buffers its fields, which a
+// `RawValue` cannot pass through.
+#[derive(Debug, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+enum Event {
+    Progress {
+        stage: String,
+        fraction: f64,
+    },
+    /// The job's files are `out/0`, `out/1`, … in the order of `names`.
+    Done {
+        names: Vec<String>,
+        report: Box<RawValue>,
+        timings: StageTimings,
+        warnings: Vec<String>,
+    },
+    Failed {
+        kind: FailureKind,
+        message: String,
+    },
+}
+
+#[derive(Debug, Clone, Copy, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+enum FailureKind {
+    BadInput,
+    TooLarge,
+    Failed,
+}
+
+/// What the child is given besides the upload.
+#[derive(Debug, Serialize, Deserialize)]
+struct Task {
+    options: ResolvedOptions,
+    max_texture_size: u32,
+    max_memory: u64,
+}
+
+/// How a job process is started and held.
+#[derive(Clone, Debug)]
+pub struct Isolation {
+    /// The `seamstress` binary (the server's own).
+    pub exe: PathBuf,
+    /// Address space a job process may map, bytes.
+    pub address_space: u64,
+    /// Where scratch folders go (inside the data folder).
+    pub scratch: PathBuf,
+}
+
+/// Runs one job in a child process. `checkpoint` receives the child's
+/// progress (an `Err` stops the child); `stopped` is polled meanwhile.
+#[allow(clippy::too_many_arguments)]
+pub fn run(
+    iso: &Isolation,
+    tag: &str,
+    bundle: &[u8],
+    options: &ResolvedOptions,
+    max_texture_size: u32,
+    limits: &Limits,
+    checkpoint: &mut dyn FnMut(&str, f64) -> Result<(), Stop>,
+    stopped: &dyn Fn() -> Option<Stop>,
+) -> Result<Produced, EngineError> {
+    let dir = iso.scratch.join(tag);
+    let _ = std::fs::remove_dir_all(&dir);
+    let failed = |what: &str, e: std::io::Error| {
+        EngineError::Failed(format!("cannot {what} the job's scratch folder: {e}"))
+    };
+    std::fs::create_dir_all(dir.join("out")).map_err(|e| failed("create", e))?;
+    let _cleanup = RemoveOnDrop(dir.clone());
+    let task = Task {
+        options: options.clone(),
+        max_texture_size,
+        max_memory: limits.max_memory,
+    };
+    std::fs::write(dir.join("input.bundle"), bundle).map_err(|e| failed("write", e))?;
+    std::fs::write(
+        dir.join("task.json"),
+        serde_json::to_vec(&task).map_err(|e| EngineError::Failed(e.to_string()))?,
+    )
+    .map_err(|e| failed("write", e))?;
+
+    let mut cmd = Command::new(&iso.exe);
+    cmd.arg("run-job")
+        .arg(&dir)
+        .env("RUST_BACKTRACE", "0")
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped());
+    let limit = iso.address_space;
+    // SAFETY: setrlimit is async-signal-safe and touches only the child.
+    unsafe {
+        cmd.pre_exec(move || {
+            let lim = libc::rlimit {
+                rlim_cur: limit,
+                rlim_max: limit,
+            };
+            if libc::setrlimit(libc::RLIMIT_AS, &lim) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            Ok(())
+        });
+    }
+    let mut child = cmd
+        .spawn()
+        .map_err(|e| EngineError::Failed(format!("cannot start the job process: {e}")))?;
+    let stdout = child.stdout.take().expect("piped stdout");
+    let mut stderr = child.stderr.take().expect("piped stderr");
+    let (events, received) = mpsc::channel();
+    let reader = std::thread::spawn(move || {
+        for line in BufReader::new(stdout).lines() {
+            let Ok(line) = line else { break };
+            match serde_json::from_str::<Event>(&line) {
+                Ok(e) => {
+                    if events.send(e).is_err() {
+                        break;
+                    }
+                }
+                Err(e) => tracing::warn!(error = %e, "unreadable event from a job process"),
+            }
+        }
+    });
+    let errors = std::thread::spawn(move || {
+        let mut text = Vec::new();
+        let _ = stderr.read_to_end(&mut text);
+        let from = text.len().saturating_sub(STDERR_TAIL);
+        String::from_utf8_lossy(&text[from..]).into_owned()
+    });
+
+    let mut outcome = None;
+    let stop = loop {
+        match received.recv_timeout(POLL) {
+            Ok(Event::Progress { stage, fraction }) => {
+                if let Err(stop) = checkpoint(&stage, fraction) {
+                    break Some(stop);
+                }
+            }
+            Ok(end) => outcome = Some(end),
+            Err(mpsc::RecvTimeoutError::Timeout) => {}
+            Err(mpsc::RecvTimeoutError::Disconnected) => break None,
+        }
+        if let Some(stop) = stopped() {
+            break Some(stop);
+        }
+    };
+    if stop.is_some() {
+        let _ = child.kill();
+    }
+    let status = child.wait();
+    let _ = reader.join();
+    let stderr_tail = errors.join().unwrap_or_default();
+    if let Some(stop) = stop {
+        return Err(EngineError::Stopped(stop));
+    }
+    match outcome {
+        Some(Event::Done {
+            names,
+            report,
+            timings,
+            warnings,
+        }) => {
+            let mut files = Vec::with_capacity(names.len());
+            for (k, name) in names.into_iter().enumerate() {
+                let bytes = std::fs::read(dir.join("out").join(k.to_string()))
+                    .map_err(|e| failed("read", e))?;
+                files.push((name, bytes));
+            }
+            Ok(Produced {
+                files,
+                report,
+                timings,
+                warnings,
+            })
+        }
+        Some(Event::Failed { kind, message }) => Err(match kind {
+            FailureKind::BadInput => EngineError::BadInput(message),
+            FailureKind::TooLarge => EngineError::TooLarge(message),
+            FailureKind::Failed => EngineError::Failed(message),
+        }),
+        _ => Err(crashed(status, &stderr_tail, limit)),
+    }
+}
+
+/// Why a child ended without an outcome, as the job's error.
+fn crashed(
+    status: std::io::Result<std::process::ExitStatus>,
+    stderr: &str,
+    limit: u64,
+) -> EngineError {
+    let how = match status {
+        Ok(s) => match (s.code(), s.signal()) {
+            (Some(c), _) => format!("exit status {c}"),
+            (None, Some(sig)) => format!("signal {sig}"),
+            _ => "an unknown status".to_string(),
+        },
+        Err(e) => format!("an unreadable status ({e})"),
+    };
+    // The panic's or the allocator's own words: the first lines it wrote.
+    let said: Vec<&str> = stderr
+        .lines()
+        .map(str::trim)
+        .filter(|l| !l.is_empty())
+        .take(2)
+        .collect();
+    let said = said.join(" ");
+    let out_of_memory = stderr.contains("memory allocation of")
+        || stderr.contains("capacity overflow")
+        || stderr.contains("out of memory");
+    if out_of_memory {
+        return EngineError::TooLarge(format!(
+            "the job ran out of its {} of address space ({said})",
+            crate::budget::Bytes(limit)
+        ));
+    }
+    EngineError::Crashed(format!("the job process ended with {how}: {said}"))
+}
+
+struct RemoveOnDrop(PathBuf);
+
+impl Drop for RemoveOnDrop {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+/// `seamstress run-job DIR`: the child's side. Always exits 0 once it has
+/// written an outcome; anything else is a crash for the worker to handle.
+pub fn child(dir: &Path) -> std::io::Result<()> {
+    use std::io::Write;
+    let stdout = std::io::stdout();
+    let emit = |e: &Event| -> std::io::Result<()> {
+        let mut line = serde_json::to_vec(e).map_err(std::io::Error::other)?;
+        line.push(b'\n');
+        let mut out = stdout.lock();
+        out.write_all(&line)?;
+        out.flush()
+    };
+    let task: Task = serde_json::from_slice(&std::fs::read(dir.join("task.json"))?)
+        .map_err(std::io::Error::other)?;
+    let bundle =
+        Bundle::decode(&std::fs::read(dir.join("input.bundle"))?).map_err(std::io::Error::other)?;
+    let limits = Limits {
+        max_memory: task.max_memory,
+    };
+    let mut checkpoint = |stage: &str, fraction: f64| -> Result<(), Stop> {
+        let _ = emit(&Event::Progress {
+            stage: stage.to_string(),
+            fraction,
+        });
+        Ok(())
+    };
+    let event = match engine::run(
+        &bundle,
+        &task.options,
+        task.max_texture_size,
+        &limits,
+        &mut checkpoint,
+    ) {
+        Ok(produced) => {
+            let mut names = Vec::with_capacity(produced.files.len());
+            for (k, (name, bytes)) in produced.files.into_iter().enumerate() {
+                std::fs::write(dir.join("out").join(k.to_string()), bytes)?;
+                names.push(name);
+            }
+            Event::Done {
+                names,
+                report: produced.report,
+                timings: produced.timings,
+                warnings: produced.warnings,
+            }
+        }
+        Err(e) => {
+            let (kind, message) = match e {
+                EngineError::BadInput(m) => (FailureKind::BadInput, m),
+                EngineError::TooLarge(m) => (FailureKind::TooLarge, m),
+                EngineError::Failed(m) | EngineError::Crashed(m) => (FailureKind::Failed, m),
+                EngineError::Stopped(_) => (FailureKind::Failed, "stopped".to_string()),
+            };
+            Event::Failed { kind, message }
+        }
+    };
+    emit(&event)
+}
