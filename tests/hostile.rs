@@ -169,3 +169,131 @@ fn bad_memory_limits_are_usage_errors() {
         assert_eq!(o.status.code(), Some(2), "{bad}");
     }
 }
+
+/// BoxTextured (.gltf and its files, copied into `dir`) with `edit` applied
+/// to its JSON.
+fn box_edited(dir: &Path, edit: impl FnOnce(&mut Value)) -> PathBuf {
+    let src = shared().join("BoxTextured/BoxTextured-glTF");
+    for f in ["BoxTextured0.bin", "CesiumLogoFlat.png"] {
+        std::fs::copy(src.join(f), dir.join(f)).unwrap();
+    }
+    let mut g: Value =
+        serde_json::from_slice(&std::fs::read(src.join("BoxTextured.gltf")).unwrap()).unwrap();
+    edit(&mut g);
+    let path = dir.join("BoxTextured.gltf");
+    std::fs::write(&path, serde_json::to_vec(&g).unwrap()).unwrap();
+    path
+}
+
+#[test]
+fn a_texture_transform_tiling_ten_thousand_times_is_refused_at_once() {
+    let dir = scratch("transform");
+    let model = box_edited(&dir, |g| {
+        g["extensionsUsed"] = serde_json::json!(["KHR_texture_transform"]);
+        g["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"]["extensions"] = serde_json::json!({
+            "KHR_texture_transform": { "scale": [1e4, 1e4] }
+        });
+    });
+    let t = Instant::now();
+    let o = seamstress(&[
+        "process",
+        model.to_str().unwrap(),
+        "--out",
+        dir.join("out").to_str().unwrap(),
+    ]);
+    refused(&o, "over the limit", &model);
+    assert!(t.elapsed() < Duration::from_secs(20), "{:?}", t.elapsed());
+}
+
+#[test]
+fn a_very_long_uri_is_bad_input_and_cut_in_the_message() {
+    let dir = scratch("longuri");
+    let long = format!("{}.png", "a".repeat(100_000));
+    let model = box_edited(&dir, |g| g["images"][0]["uri"] = Value::String(long));
+    let o = seamstress(&[
+        "process",
+        model.to_str().unwrap(),
+        "--out",
+        dir.join("out").to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{}", &err[..err.len().min(500)]);
+    assert!(err.len() < 1000, "{} bytes of message", err.len());
+    assert_eq!(err.trim().lines().count(), 1);
+}
+
+#[test]
+fn a_buffer_file_far_longer_than_declared_is_refused_unread() {
+    let dir = scratch("longbuffer");
+    let model = box_edited(&dir, |_| {});
+    let mut bin = std::fs::read(dir.join("BoxTextured0.bin")).unwrap();
+    bin.resize(bin.len() + (1 << 20), 0);
+    std::fs::write(dir.join("BoxTextured0.bin"), bin).unwrap();
+    let o = seamstress(&[
+        "process",
+        model.to_str().unwrap(),
+        "--out",
+        dir.join("out").to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("buffer 0") && err.contains("more than"),
+        "{err}"
+    );
+}
+
+#[test]
+fn concurrent_runs_into_one_out_neither_fail_nor_mix() {
+    let dir = scratch("concurrent");
+    let model = shared().join("cube/cube_gradient_128.glb");
+    let out = dir.join("out");
+    let run = || {
+        Command::new(env!("CARGO_BIN_EXE_seamstress"))
+            .args([
+                "process",
+                model.to_str().unwrap(),
+                "--out",
+                out.to_str().unwrap(),
+            ])
+            .output()
+            .unwrap()
+    };
+    let reference = run();
+    assert!(reference.status.success());
+    let dds = std::fs::read(out.join("image0.dds")).unwrap();
+    for _ in 0..4 {
+        let (a, b) = std::thread::scope(|s| {
+            let a = s.spawn(run);
+            let b = s.spawn(run);
+            (a.join().unwrap(), b.join().unwrap())
+        });
+        for o in [a, b] {
+            assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        }
+        assert_eq!(
+            std::fs::read(out.join("image0.dds")).unwrap(),
+            dds
+        );
+    }
+    // Only the outputs remain: no staging folders or temporary files.
+    for e in std::fs::read_dir(&out).unwrap() {
+        let name = e.unwrap().file_name().into_string().unwrap();
+        assert!(!name.starts_with('.'), "{name} left in --out");
+    }
+}
+
+#[test]
+fn an_out_that_cannot_be_written_is_bad_input() {
+    // No one, root included, can make a folder in /proc.
+    let model = shared().join("cube/cube_gradient_128.glb");
+    let o = seamstress(&[
+        "process",
+        model.to_str().unwrap(),
+        "--out",
+        "/proc/seamstress-out",
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("/proc/seamstress-out"), "{err}");
+}

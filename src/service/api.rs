@@ -423,9 +423,12 @@ fn parse_query(query: Option<&str>) -> Result<(JobOptions, Option<String>), ApiE
         };
         let (k, v) = (decode(k)?, decode(v)?);
         if k == "name" {
-            let safe = safe_name(&v).filter(|n| is_model_name(n)).ok_or_else(|| {
-                ApiError::bad_request("name must be a file name ending in .glb or .gltf")
-            })?;
+            // A raw upload is one file: its name has no folder part.
+            let safe = safe_name(&v)
+                .filter(|n| is_model_name(n) && !n.contains('/'))
+                .ok_or_else(|| {
+                    ApiError::bad_request("name must be a file name ending in .glb or .gltf")
+                })?;
             name = Some(safe);
         } else if QUERY_OPTIONS.contains(&k.as_str()) {
             options
@@ -660,10 +663,14 @@ async fn list_jobs(
                     .ok_or_else(|| ApiError::bad_request("limit must be 1 to 100"))?
             }
             "cursor" => {
+                // As the contract's pattern: 1 to 18 digits, no leading 0.
+                let well_formed = (1..=18).contains(&v.len())
+                    && v.bytes().all(|b| b.is_ascii_digit())
+                    && !v.starts_with('0');
                 before = Some(
                     v.parse::<i64>()
                         .ok()
-                        .filter(|n| *n > 0)
+                        .filter(|_| well_formed)
                         .ok_or_else(|| ApiError::bad_request("invalid cursor"))?,
                 )
             }

@@ -33,6 +33,8 @@ pub enum EngineError {
     Failed(String),
     /// The job's process died without an outcome (`crashed`).
     Crashed(String),
+    /// Its results could not be written: the disk is full (`storage_full`).
+    StorageFull(String),
     Stopped(Stop),
 }
 

@@ -62,6 +62,7 @@ enum Event {
 enum FailureKind {
     BadInput,
     TooLarge,
+    StorageFull,
     Failed,
 }
 
@@ -100,7 +101,12 @@ pub fn run(
     let dir = iso.scratch.join(tag);
     let _ = std::fs::remove_dir_all(&dir);
     let failed = |what: &str, e: std::io::Error| {
-        EngineError::Failed(format!("cannot {what} the job's scratch folder: {e}"))
+        let message = format!("cannot {what} the job's scratch folder: {e}");
+        if super::store::is_full(&e) {
+            EngineError::StorageFull(message)
+        } else {
+            EngineError::Failed(message)
+        }
     };
     std::fs::create_dir_all(dir.join("out")).map_err(|e| failed("create", e))?;
     let _cleanup = RemoveOnDrop(dir.clone());
@@ -211,6 +217,7 @@ pub fn run(
         Some(Event::Failed { kind, message }) => Err(match kind {
             FailureKind::BadInput => EngineError::BadInput(message),
             FailureKind::TooLarge => EngineError::TooLarge(message),
+            FailureKind::StorageFull => EngineError::StorageFull(message),
             FailureKind::Failed => EngineError::Failed(message),
         }),
         _ => Err(crashed(status, &stderr_tail, limit)),
@@ -294,21 +301,36 @@ pub fn child(dir: &Path) -> std::io::Result<()> {
     ) {
         Ok(produced) => {
             let mut names = Vec::with_capacity(produced.files.len());
+            let mut written = Ok(());
             for (k, (name, bytes)) in produced.files.into_iter().enumerate() {
-                std::fs::write(dir.join("out").join(k.to_string()), bytes)?;
+                written = std::fs::write(dir.join("out").join(k.to_string()), bytes);
+                if written.is_err() {
+                    break;
+                }
                 names.push(name);
             }
-            Event::Done {
-                names,
-                report: produced.report,
-                timings: produced.timings,
-                warnings: produced.warnings,
+            match written {
+                Ok(()) => Event::Done {
+                    names,
+                    report: produced.report,
+                    timings: produced.timings,
+                    warnings: produced.warnings,
+                },
+                Err(e) => Event::Failed {
+                    kind: if super::store::is_full(&e) {
+                        FailureKind::StorageFull
+                    } else {
+                        FailureKind::Failed
+                    },
+                    message: format!("cannot write the results: {e}"),
+                },
             }
         }
         Err(e) => {
             let (kind, message) = match e {
                 EngineError::BadInput(m) => (FailureKind::BadInput, m),
                 EngineError::TooLarge(m) => (FailureKind::TooLarge, m),
+                EngineError::StorageFull(m) => (FailureKind::StorageFull, m),
                 EngineError::Failed(m) | EngineError::Crashed(m) => (FailureKind::Failed, m),
                 EngineError::Stopped(_) => (FailureKind::Failed, "stopped".to_string()),
             };

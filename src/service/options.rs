@@ -38,21 +38,44 @@ pub enum ApiLevel {
 
 /// Options as a client sends them (JSON part or query parameters); absent
 /// ones take the command line's defaults.
+///
+/// An option is given or left out; `null` is refused, as the contract says.
 #[derive(Clone, Debug, Default, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct JobOptions {
+    #[serde(default, deserialize_with = "present")]
     pub mode: Option<ApiMode>,
+    #[serde(default, deserialize_with = "present")]
     pub method: Option<ApiMethod>,
+    #[serde(default, deserialize_with = "present")]
     pub format: Option<ApiFormat>,
+    #[serde(default, deserialize_with = "present")]
     pub bc1_level: Option<ApiLevel>,
+    #[serde(default, deserialize_with = "present")]
     pub seam_aware: Option<bool>,
+    #[serde(default, deserialize_with = "present")]
     pub seam_weight: Option<f64>,
+    #[serde(default, deserialize_with = "present")]
     pub mips: Option<bool>,
+    #[serde(default, deserialize_with = "present")]
     pub dx10: Option<bool>,
+    #[serde(default, deserialize_with = "present")]
     pub extra_maps: Option<bool>,
+    #[serde(default, deserialize_with = "present")]
     pub seam_tolerance: Option<f64>,
+    #[serde(default, deserialize_with = "present")]
     pub erase_all: Option<bool>,
+    #[serde(default, deserialize_with = "present")]
     pub decoder: Option<Target>,
+}
+
+/// A field that, when present, must hold a value (not `null`).
+fn present<'de, D, T>(d: D) -> Result<Option<T>, D::Error>
+where
+    D: serde::Deserializer<'de>,
+    T: Deserialize<'de>,
+{
+    T::deserialize(d).map(Some)
 }
 
 /// Every option decided: stored with the job, shown to the client, and part
@@ -263,6 +286,13 @@ mod tests {
         o.set_from_query("mode", "global").unwrap();
         o.set_from_query("mips", "true").unwrap();
         o.set_from_query("bc1_level", "fast").unwrap();
+        assert!(serde_json::from_str::<JobOptions>(r#"{"bc1_level": null}"#).is_err());
+        assert_eq!(
+            serde_json::from_str::<JobOptions>(r#"{"mips": true}"#)
+                .unwrap()
+                .mips,
+            Some(true)
+        );
         assert!(o.set_from_query("mode", "sideways").is_err());
         assert!(o.set_from_query("dx10", "maybe").is_err());
         assert!(o.set_from_query("colour", "red").is_err());

@@ -325,6 +325,7 @@ fn execute(app: &Shared, mut job: Job, flag: &AtomicU8) -> Result<JobState, Stor
         Err(EngineError::BadInput(message)) => fail(app, job, "invalid_model", message, started),
         Err(EngineError::TooLarge(message)) => fail(app, job, "too_large", message, started),
         Err(EngineError::Crashed(message)) => fail(app, job, "crashed", message, started),
+        Err(EngineError::StorageFull(message)) => fail(app, job, "storage_full", message, started),
         Err(EngineError::Failed(message)) => fail(app, job, "processing_failed", message, started),
         Err(EngineError::Stopped(stop)) => stopped(app, job, stop),
     }
