@@ -271,10 +271,7 @@ fn concurrent_runs_into_one_out_neither_fail_nor_mix() {
         for o in [a, b] {
             assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
         }
-        assert_eq!(
-            std::fs::read(out.join("image0.dds")).unwrap(),
-            dds
-        );
+        assert_eq!(std::fs::read(out.join("image0.dds")).unwrap(), dds);
     }
     // Only the outputs remain: no staging folders or temporary files.
     for e in std::fs::read_dir(&out).unwrap() {
