@@ -3,16 +3,18 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use std::time::Instant;
 
 use anyhow::Context;
 use clap::{Parser, Subcommand};
 
 use seamstress::bc1::Level;
 use seamstress::budget::{self, Limits};
-use seamstress::model::{self, LoadOptions};
+use seamstress::model::rewrite::referenced_files;
+use seamstress::model::{DirResolver, LoadOptions};
+use seamstress::pipeline::job::REPORT_NAME;
 use seamstress::pipeline::{
-    self, Format, Method, ProcessOptions, Target, DEFAULT_SEAM_TOLERANCE, DEFAULT_SEAM_WEIGHT,
+    self, Format, JobError, JobInput, JobSettings, Method, NoSink, ProcessOptions, Target,
+    DEFAULT_SEAM_TOLERANCE, DEFAULT_SEAM_WEIGHT,
 };
 use seamstress::seam::erase::Mode;
 
@@ -53,17 +55,20 @@ struct ProcessArgs {
     /// Folder for the outputs (created if missing).
     #[arg(long)]
     out: PathBuf,
-    /// How far from the seams texels may change.
-    #[arg(long, value_enum, default_value = "local")]
+    /// How far from the seams texels may change: local, or global (changes
+    /// spread over the charts, for sides painted with a colour offset).
+    #[arg(long, value_parser = word::<Mode>, default_value = "local")]
     mode: Mode,
-    /// How the two sides of a seam are made to agree.
-    #[arg(long, value_enum, default_value = "erase")]
+    /// How the two sides of a seam are made to agree: erase (along the whole
+    /// seam, integrated exactly) or masking (at sampled points).
+    #[arg(long, value_parser = word::<Method>, default_value = "erase")]
     method: Method,
-    /// The files written for each texture.
-    #[arg(long, value_enum, default_value = "dds")]
+    /// The files written for each texture: dds (a BC1 DDS and the erased
+    /// PNG) or png (the erased PNG only).
+    #[arg(long, value_parser = word::<Format>, default_value = "dds")]
     format: Format,
     /// BC1 encoder effort: fast, default or best.
-    #[arg(long, default_value = "default")]
+    #[arg(long, value_parser = word::<Level>, default_value = "default")]
     bc1_level: Level,
     /// Store the regular BC1 encoding instead of the seam-aware one.
     #[arg(long)]
@@ -94,7 +99,7 @@ struct ProcessArgs {
     /// The GPU decoders whose palette rounding the seam-aware encoding keeps
     /// the seams closed under: ideal (the float palette), nvidia, amd, or
     /// robust (all three at once: one file for any GPU).
-    #[arg(long, value_parser = parse_target, default_value = "robust")]
+    #[arg(long, value_parser = word::<Target>, default_value = "robust")]
     decoder: Target,
     /// Also write <name>.seams.png: the seams coloured by what was done to
     /// them, with close-ups of the worst.
@@ -146,10 +151,10 @@ fn main() -> ExitCode {
     }
 }
 
-/// `--decoder`: the same words as the HTTP option.
-fn parse_target(s: &str) -> Result<Target, String> {
-    serde_json::from_value(serde_json::Value::String(s.to_string()))
-        .map_err(|_| format!("{s:?} is not one of ideal, nvidia, amd, robust"))
+/// An option's word, as the HTTP options and the report spell it: the
+/// options are defined once, in the library, with their serde names.
+fn word<T: serde::de::DeserializeOwned>(s: &str) -> Result<T, String> {
+    serde_json::from_value(serde_json::Value::String(s.to_string())).map_err(|e| e.to_string())
 }
 
 fn init_logging(format: LogFormat, default_level: &str) {
@@ -225,48 +230,66 @@ fn process(args: &ProcessArgs) -> Result<(), Failure> {
         pictures: args.pictures,
         decoder: args.decoder,
     };
-    let bad_load = |e: model::LoadError| {
-        if e.is_bad_input() {
-            Failure::BadInput(e.to_string())
-        } else {
-            Failure::Internal(e.into())
-        }
-    };
-    let t = Instant::now();
-    let plan = model::plan(&args.input, &load_opts).map_err(bad_load)?;
-    let need = budget::need(&plan, &opts);
     let limits = Limits {
         max_memory: args.max_memory.unwrap_or_else(budget::usable_memory),
     };
-    tracing::debug!(
-        texels = need.texels,
-        quadrature_points = need.quadrature_points,
-        covered_texels = need.covered_texels,
-        memory_bytes = need.memory_bytes,
-        max_memory = limits.max_memory,
-        "budget"
-    );
-    if let Err(over) = budget::check(&need, &limits) {
-        return Err(Failure::BadInput(format!("{}: {over}", plan.file())));
-    }
-    let model = plan.decode().map_err(bad_load)?;
-    let load_ms = t.elapsed().as_millis() as u64;
-    let name = args
-        .input
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    let output = pipeline::run(&model, &name, load_ms, &opts).context("processing failed")?;
+    let name = args.input.display().to_string();
+    let main = std::fs::read(&args.input).map_err(|e| {
+        let message = format!("{name}: cannot read it: {e}");
+        match e.kind() {
+            std::io::ErrorKind::NotFound | std::io::ErrorKind::IsADirectory => {
+                Failure::BadInput(message)
+            }
+            _ => Failure::Internal(anyhow::anyhow!(message)),
+        }
+    })?;
+    let dir = match args.input.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    };
+    let files = DirResolver::new(dir).with_context(|| format!("cannot open {}", dir.display()))?;
+    let input = JobInput {
+        name: &name,
+        main: &main,
+        files: &files,
+    };
+    let settings = JobSettings {
+        process: opts,
+        load: load_opts,
+        limits,
+    };
+    let output = pipeline::run_job(&input, &settings, &mut NoSink).map_err(|e| match e {
+        JobError::BadInput(m) | JobError::TooLarge(m) => Failure::BadInput(m),
+        e => Failure::Internal(anyhow::anyhow!("processing failed: {e}")),
+    })?;
 
-    let mut json = serde_json::to_vec_pretty(&output.report).context("cannot serialise report")?;
-    json.push(b'\n');
+    // Written into the model's own folder, the rewritten model and its
+    // files would replace the originals: those are left as they are.
+    let same_folder = match (args.out.canonicalize(), dir.canonicalize()) {
+        (Ok(a), Ok(b)) => a == b,
+        _ => false,
+    };
+    let mut originals = referenced_files(&main).unwrap_or_default();
+    originals.extend(
+        args.input
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned()),
+    );
     for f in &output.files {
+        if same_folder && originals.contains(&f.name) {
+            tracing::warn!(file = %f.name, "not written: --out is the model's folder and holds it");
+            continue;
+        }
         staging.write(&f.name, &f.bytes)?;
     }
-    staging.write("report.json", &json)?;
     staging.publish()?;
+    let report = output
+        .files
+        .iter()
+        .find(|f| f.name == REPORT_NAME)
+        .map_or(&[][..], |f| &f.bytes[..]);
     std::io::stdout()
-        .write_all(&json)
+        .write_all(report)
         .context("cannot write to standard output")?;
     Ok(())
 }
@@ -297,6 +320,10 @@ impl Staging {
 
     fn write(&mut self, name: &str, bytes: &[u8]) -> anyhow::Result<()> {
         let path = self.dir.join(name);
+        if let Some(parent) = path.parent() {
+            std::fs::create_dir_all(parent)
+                .with_context(|| format!("cannot create {}", parent.display()))?;
+        }
         let mut f = std::fs::File::create(&path)
             .with_context(|| format!("cannot create {}", path.display()))?;
         f.write_all(bytes)
@@ -309,6 +336,10 @@ impl Staging {
     fn publish(&self) -> anyhow::Result<()> {
         for name in &self.names {
             let to = self.out.join(name);
+            if let Some(parent) = to.parent() {
+                std::fs::create_dir_all(parent)
+                    .with_context(|| format!("cannot create {}", parent.display()))?;
+            }
             std::fs::rename(self.dir.join(name), &to)
                 .with_context(|| format!("cannot write {}", to.display()))?;
         }

@@ -26,7 +26,10 @@ pub use block::{expand565, pack565, unpack565, Block};
 pub use decoder::{Decoder, Target};
 
 /// Encoder effort. `Default` is the pipeline's default.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+#[derive(
+    Clone, Copy, Debug, Default, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize,
+)]
+#[serde(rename_all = "snake_case")]
 pub enum Level {
     /// Principal axis and one exact least-squares refit (over 100 MPix/s
     /// on one core).

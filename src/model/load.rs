@@ -522,6 +522,15 @@ fn is_data_uri(uri: &str) -> bool {
         .is_some_and(|head| head.eq_ignore_ascii_case("data:"))
 }
 
+/// The checked, percent-decoded relative path a URI names, or `None` for a
+/// data URI or one that is refused.
+pub(crate) fn relative_file(uri: &str) -> Option<String> {
+    match classify_uri(uri) {
+        Ok(UriTarget::File(path)) => Some(path),
+        _ => None,
+    }
+}
+
 /// Classifies a URI, refusing anything that could leave the model's folder.
 fn classify_uri(uri: &str) -> Result<UriTarget<'_>, String> {
     if is_data_uri(uri) {

@@ -181,6 +181,32 @@ pub fn add_dds_sources(
     Ok(referenced)
 }
 
+/// The files beside it that a model file refers to (buffers and images by
+/// relative URI, in order, without repeats): what a rewritten `.gltf` needs
+/// next to it.
+pub fn referenced_files(main: &[u8]) -> Result<Vec<String>, RewriteError> {
+    let json = if main.starts_with(b"glTF") {
+        split_glb(main)?.json
+    } else {
+        main
+    };
+    let json = json.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(json);
+    let root: Value =
+        serde_json::from_slice(json).map_err(|e| RewriteError::Json(e.to_string()))?;
+    let mut out: Vec<String> = Vec::new();
+    for list in ["buffers", "images"] {
+        for item in root[list].as_array().map(Vec::as_slice).unwrap_or(&[]) {
+            let path = item["uri"].as_str().and_then(super::load::relative_file);
+            if let Some(path) = path {
+                if !out.contains(&path) {
+                    out.push(path);
+                }
+            }
+        }
+    }
+    Ok(out)
+}
+
 /// Rewrites a whole model file (`.glb` or `.gltf` bytes) with
 /// [`add_dds_sources`]; the result has the same container as the input.
 pub fn rewrite_model(main: &[u8], dds: &BTreeMap<usize, String>) -> Result<Vec<u8>, RewriteError> {

@@ -42,7 +42,7 @@ use crate::model::SeamSet;
 
 /// How far the erasure may spread (SPEC §4): `local` keeps changes near the
 /// seams; `global` lets a colour offset between the two sides spread out.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Default, clap::ValueEnum, serde::Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Mode {
     /// Change only texels near the seams

@@ -7,35 +7,6 @@ use crate::bc1::Level;
 use crate::pipeline::{Format, Method, ProcessOptions, Target};
 use crate::seam::erase::Mode;
 
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum ApiMode {
-    Local,
-    Global,
-}
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum ApiMethod {
-    Erase,
-    Masking,
-}
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum ApiFormat {
-    Dds,
-    Png,
-}
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum ApiLevel {
-    Fast,
-    Default,
-    Best,
-}
-
 /// Options as a client sends them (JSON part or query parameters); absent
 /// ones take the command line's defaults.
 ///
@@ -44,13 +15,13 @@ pub enum ApiLevel {
 #[serde(deny_unknown_fields)]
 pub struct JobOptions {
     #[serde(default, deserialize_with = "present")]
-    pub mode: Option<ApiMode>,
+    pub mode: Option<Mode>,
     #[serde(default, deserialize_with = "present")]
-    pub method: Option<ApiMethod>,
+    pub method: Option<Method>,
     #[serde(default, deserialize_with = "present")]
-    pub format: Option<ApiFormat>,
+    pub format: Option<Format>,
     #[serde(default, deserialize_with = "present")]
-    pub bc1_level: Option<ApiLevel>,
+    pub bc1_level: Option<Level>,
     #[serde(default, deserialize_with = "present")]
     pub seam_aware: Option<bool>,
     #[serde(default, deserialize_with = "present")]
@@ -82,10 +53,10 @@ where
 /// of the result-cache key.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ResolvedOptions {
-    pub mode: ApiMode,
-    pub method: ApiMethod,
-    pub format: ApiFormat,
-    pub bc1_level: ApiLevel,
+    pub mode: Mode,
+    pub method: Method,
+    pub format: Format,
+    pub bc1_level: Level,
     pub seam_aware: bool,
     pub seam_weight: f64,
     pub mips: bool,
@@ -199,23 +170,10 @@ impl JobOptions {
             ));
         }
         Ok(ResolvedOptions {
-            mode: self.mode.unwrap_or(match d.mode {
-                Mode::Local => ApiMode::Local,
-                Mode::Global => ApiMode::Global,
-            }),
-            method: self.method.unwrap_or(match d.method {
-                Method::Erase => ApiMethod::Erase,
-                Method::Masking => ApiMethod::Masking,
-            }),
-            format: self.format.unwrap_or(match d.format {
-                Format::Dds => ApiFormat::Dds,
-                Format::Png => ApiFormat::Png,
-            }),
-            bc1_level: self.bc1_level.unwrap_or(match d.bc1_level {
-                Level::Fast => ApiLevel::Fast,
-                Level::Default => ApiLevel::Default,
-                Level::Best => ApiLevel::Best,
-            }),
+            mode: self.mode.unwrap_or(d.mode),
+            method: self.method.unwrap_or(d.method),
+            format: self.format.unwrap_or(d.format),
+            bc1_level: self.bc1_level.unwrap_or(d.bc1_level),
             seam_aware: self.seam_aware.unwrap_or(d.seam_aware),
             seam_weight,
             mips: self.mips.unwrap_or(d.mips),
@@ -228,37 +186,23 @@ impl JobOptions {
     }
 }
 
-/// The single place where API options become engine options: a field added
-/// to [`ProcessOptions`] is wired up here (and in the structs above).
+/// The engine's options for a job: the same types, one field each (the
+/// load option `extra_maps` aside).
 pub fn process_options(o: &ResolvedOptions) -> ProcessOptions {
     ProcessOptions {
-        mode: match o.mode {
-            ApiMode::Local => Mode::Local,
-            ApiMode::Global => Mode::Global,
-        },
-        method: match o.method {
-            ApiMethod::Erase => Method::Erase,
-            ApiMethod::Masking => Method::Masking,
-        },
-        format: match o.format {
-            ApiFormat::Dds => Format::Dds,
-            ApiFormat::Png => Format::Png,
-        },
-        bc1_level: match o.bc1_level {
-            ApiLevel::Fast => Level::Fast,
-            ApiLevel::Default => Level::Default,
-            ApiLevel::Best => Level::Best,
-        },
+        mode: o.mode,
+        method: o.method,
+        format: o.format,
+        bc1_level: o.bc1_level,
         seam_aware: o.seam_aware,
         seam_weight: o.seam_weight,
         mips: o.mips,
         dx10: o.dx10,
         seam_tolerance: o.seam_tolerance,
         erase_all: o.erase_all,
-        decoder: o.decoder,
-        // People look at pictures rather than read numbers; the service
-        // always draws them.
+        // The service always draws the seams picture.
         pictures: true,
+        decoder: o.decoder,
     }
 }
 
@@ -297,9 +241,9 @@ mod tests {
         assert!(o.set_from_query("dx10", "maybe").is_err());
         assert!(o.set_from_query("colour", "red").is_err());
         let r = o.resolve().unwrap();
-        assert_eq!(r.mode, ApiMode::Global);
+        assert_eq!(r.mode, Mode::Global);
         assert!(r.mips);
-        assert_eq!(r.bc1_level, ApiLevel::Fast);
+        assert_eq!(r.bc1_level, Level::Fast);
         o.seam_weight = Some(f64::NAN);
         assert!(o.resolve().is_err());
     }
@@ -307,13 +251,13 @@ mod tests {
     #[test]
     fn json_part_overrides_query() {
         let q = JobOptions {
-            mode: Some(ApiMode::Global),
+            mode: Some(Mode::Global),
             dx10: Some(true),
             ..JobOptions::default()
         };
         let part: JobOptions = serde_json::from_str(r#"{"mode":"local"}"#).unwrap();
         let m = q.overridden_by(part);
-        assert_eq!(m.mode, Some(ApiMode::Local));
+        assert_eq!(m.mode, Some(Mode::Local));
         assert_eq!(m.dx10, Some(true));
         assert!(serde_json::from_str::<JobOptions>(r#"{"colour":1}"#).is_err());
     }

@@ -1,4 +1,6 @@
-//! One job: a loaded model in, output files and a report out.
+//! The pipeline: [`run_job`] (in `job.rs`) takes a model file and its files
+//! to every output, the rewritten model included; [`run`] takes a loaded
+//! model through each texture's stages to its files and report.
 //!
 //! model → seams → erase → encode (regular, then seam-aware) → DDS.
 //!
@@ -6,11 +8,17 @@
 //! named byte buffers, which the CLI writes into a folder and the service
 //! into its file store, so both serve identical bytes.
 
+pub mod job;
+mod progress;
+
+pub use job::{run_job, JobError, JobInput, JobOutput, JobSettings, JobTimings};
+pub use progress::{NoSink, Progress, Sink, Stop};
+
 use std::collections::BTreeMap;
 use std::time::Instant;
 
 use rayon::prelude::*;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::bc1::dds::{write_dds, DdsHeaderKind, MipLevel};
 use crate::bc1::seam_aware::{optimise, Problem, SeamAwareOptions};
@@ -30,7 +38,7 @@ use crate::seam::system::SolveError;
 use crate::seam::{colour_channels, psnr, SeamMetric, TexelClasses, TexelGrid};
 
 /// How seams are removed.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Default, clap::ValueEnum, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Method {
     /// Both sides agree along the whole seam, integrated exactly
@@ -43,7 +51,7 @@ pub enum Method {
 }
 
 /// What `process` writes for each texture besides the erased PNG.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Default, clap::ValueEnum, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Format {
     /// A BC1 DDS file and the erased PNG.
@@ -112,6 +120,8 @@ pub enum PipelineError {
     },
     #[error("texture {name}: cannot encode: {message}")]
     Encode { name: String, message: String },
+    #[error("stopped: {0:?}")]
+    Stopped(Stop),
 }
 
 /// Seam and fidelity figures for one version of a texture.
@@ -241,10 +251,29 @@ pub fn run(
     load_ms: u64,
     opts: &ProcessOptions,
 ) -> Result<Output, PipelineError> {
+    run_reporting(model, input_name, load_ms, opts, &mut NoSink)
+}
+
+/// [`run`], telling `sink` before each texture (textures span fractions
+/// 0.1 to 0.9 of the job) and stopping when it says so.
+pub fn run_reporting(
+    model: &Model,
+    input_name: &str,
+    load_ms: u64,
+    opts: &ProcessOptions,
+    sink: &mut dyn Sink,
+) -> Result<Output, PipelineError> {
     let mut files = Vec::new();
     let mut textures = Vec::new();
     let mut warnings = Vec::new();
-    for binding in &model.bindings {
+    let total = model.bindings.len();
+    for (k, binding) in model.bindings.iter().enumerate() {
+        sink.progress(&Progress {
+            stage: "process",
+            texture: Some((k, total)),
+            fraction: 0.1 + 0.8 * k as f64 / total as f64,
+        })
+        .map_err(PipelineError::Stopped)?;
         let (report, mut out) = process_texture(binding, load_ms, opts)?;
         files.append(&mut out);
         warnings.extend(harm_warning(&report, opts));

@@ -1,0 +1,199 @@
+//! The whole job, the library's one entry point: a model and its files in;
+//! every texture's files, `report.json` and the model rewritten to use the
+//! DDS files out. The CLI and the service both call [`run_job`] and add
+//! nothing to it but where the bytes come from and go to.
+
+use std::collections::BTreeMap;
+use std::time::Instant;
+
+use crate::budget::{self, Limits};
+use crate::model::rewrite::{referenced_files, rewrite_model};
+use crate::model::{self, LoadError, LoadOptions, Resolver};
+
+use super::progress::{Progress, Sink, Stop};
+use super::{run_reporting, OutputFile, PipelineError, ProcessOptions, Report};
+
+/// The name of the report among a job's files.
+pub const REPORT_NAME: &str = "report.json";
+
+/// A model to process: its file and what its URIs refer to.
+pub struct JobInput<'a> {
+    /// The model's file name (a path for the CLI): the report's `input`,
+    /// errors' subject, and (its last component) the rewritten model's name.
+    pub name: &'a str,
+    pub main: &'a [u8],
+    pub files: &'a dyn Resolver,
+}
+
+/// Everything a job is told.
+#[derive(Clone, Debug)]
+pub struct JobSettings {
+    pub process: ProcessOptions,
+    pub load: LoadOptions,
+    pub limits: Limits,
+}
+
+/// Milliseconds per stage of the job.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct JobTimings {
+    pub load: u64,
+    pub process: u64,
+    pub rewrite: u64,
+}
+
+/// A finished job.
+pub struct JobOutput {
+    /// In a stable order: per texture as the pipeline makes them, then
+    /// `report.json`, then the rewritten model and the files beside it.
+    pub files: Vec<OutputFile>,
+    pub report: Report,
+    /// The report's warnings and any about the rewritten model.
+    pub warnings: Vec<String>,
+    pub timings: JobTimings,
+}
+
+/// Why a job ended without its files.
+#[derive(Debug, thiserror::Error)]
+pub enum JobError {
+    /// The input is at fault (one line naming the file).
+    #[error("{0}")]
+    BadInput(String),
+    /// Over the budget: the quantity, its value and the limit.
+    #[error("{0}")]
+    TooLarge(String),
+    /// The engine failed on a model it accepted, or the machine did.
+    #[error("{0}")]
+    Failed(String),
+    #[error("stopped: {0:?}")]
+    Stopped(Stop),
+}
+
+impl From<LoadError> for JobError {
+    fn from(e: LoadError) -> Self {
+        if e.is_bad_input() {
+            JobError::BadInput(e.to_string())
+        } else {
+            JobError::Failed(e.to_string())
+        }
+    }
+}
+
+/// Runs the whole job; `sink` hears its progress and may stop it.
+pub fn run_job(
+    input: &JobInput<'_>,
+    settings: &JobSettings,
+    sink: &mut dyn Sink,
+) -> Result<JobOutput, JobError> {
+    let at = |stage, fraction| Progress {
+        stage,
+        texture: None,
+        fraction,
+    };
+    sink.progress(&at("load", 0.0)).map_err(JobError::Stopped)?;
+    let t = Instant::now();
+    let plan = model::plan_from_memory(input.name, input.main, input.files, &settings.load)?;
+    let need = budget::need(&plan, &settings.process);
+    budget::check(&need, &settings.limits)
+        .map_err(|over| JobError::TooLarge(format!("{}: {over}", plan.file())))?;
+    let model = plan.decode()?;
+    let mut timings = JobTimings {
+        load: t.elapsed().as_millis() as u64,
+        ..JobTimings::default()
+    };
+
+    let t = Instant::now();
+    let out = run_reporting(
+        &model,
+        base_name(input.name),
+        timings.load,
+        &settings.process,
+        sink,
+    )
+    .map_err(|e| match e {
+        PipelineError::Stopped(stop) => JobError::Stopped(stop),
+        e => JobError::Failed(e.to_string()),
+    })?;
+    timings.process = t.elapsed().as_millis() as u64;
+    drop(model);
+
+    sink.progress(&at("rewrite", 0.9))
+        .map_err(JobError::Stopped)?;
+    let t = Instant::now();
+    let mut files = out.files;
+    let mut json = serde_json::to_vec_pretty(&out.report)
+        .map_err(|e| JobError::Failed(format!("cannot serialise the report: {e}")))?;
+    json.push(b'\n');
+    files.push(OutputFile {
+        name: REPORT_NAME.to_string(),
+        bytes: json,
+    });
+    let mut warnings = out.report.warnings.clone();
+    rewritten_model(input, &out.report, &mut files, &mut warnings);
+    timings.rewrite = t.elapsed().as_millis() as u64;
+    Ok(JobOutput {
+        files,
+        report: out.report,
+        warnings,
+        timings,
+    })
+}
+
+/// The last component of a model's name.
+fn base_name(name: &str) -> &str {
+    name.rsplit(['/', '\\']).next().unwrap_or(name)
+}
+
+/// Adds the model rewritten to use the DDS files (`MSFT_texture_dds`) and,
+/// for a `.gltf`, the files it refers to, when the report lists DDS files.
+/// What stands in the way is a warning, not a failure: the DDS files are
+/// the job's point.
+fn rewritten_model(
+    input: &JobInput<'_>,
+    report: &Report,
+    files: &mut Vec<OutputFile>,
+    warnings: &mut Vec<String>,
+) {
+    let dds: BTreeMap<usize, String> = report
+        .textures
+        .iter()
+        .filter_map(|t| Some((t.image, t.files.dds.clone()?)))
+        .collect();
+    if dds.is_empty() {
+        return;
+    }
+    let beside = match referenced_files(input.main) {
+        Ok(list) => list,
+        Err(e) => return warnings.push(format!("no rewritten model: {e}")),
+    };
+    let model_name = base_name(input.name).to_string();
+    let taken = |name: &str| files.iter().any(|f| f.name == name);
+    if let Some(clash) = std::iter::once(&model_name)
+        .chain(&beside)
+        .find(|n| taken(n))
+    {
+        return warnings.push(format!(
+            "no rewritten model: the model's file {clash:?} has the name of an output"
+        ));
+    }
+    let bytes = match rewrite_model(input.main, &dds) {
+        Ok(b) => b,
+        Err(e) => return warnings.push(format!("no rewritten model: {e}")),
+    };
+    let mut copied = Vec::with_capacity(beside.len());
+    for name in beside {
+        match input.files.read(&name) {
+            Ok(data) => copied.push(OutputFile {
+                name,
+                bytes: data.into_owned(),
+            }),
+            Err(e) => {
+                return warnings.push(format!("no rewritten model: cannot read {name:?}: {e}"))
+            }
+        }
+    }
+    files.push(OutputFile {
+        name: model_name,
+        bytes,
+    });
+    files.extend(copied);
+}
