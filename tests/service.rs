@@ -315,14 +315,17 @@ async fn every_shared_model_in_every_form_matches_process() {
     let _ = std::fs::remove_dir_all(&out);
 }
 
-/// The rewritten model references every DDS through MSFT_texture_dds, keeps
-/// the original images, and loads again with the job's files beside it.
+/// The rewritten model references every DDS through MSFT_texture_dds, with
+/// the erased PNG as the fallback image; a `.glb` carries both in its
+/// binary chunk and loads on its own, a `.gltf` loads with the job's files
+/// beside it, and either binds the erased texels.
 fn check_rewritten_model(rel: &str, job: &Value, files: &BTreeMap<String, Vec<u8>>) {
     let name = job["input"]["name"].as_str().unwrap();
     let main = files
         .get(name)
         .unwrap_or_else(|| panic!("{rel}: no rewritten model {name}"));
-    let root: Value = if name.ends_with(".glb") {
+    let glb = name.ends_with(".glb");
+    let root: Value = if glb {
         let parts = seamstress::model::rewrite::split_glb(main).unwrap();
         serde_json::from_slice(parts.json).unwrap()
     } else {
@@ -337,8 +340,9 @@ fn check_rewritten_model(rel: &str, job: &Value, files: &BTreeMap<String, Vec<u8
     );
     let images = root["images"].as_array().unwrap();
     for t in job["report"]["textures"].as_array().unwrap() {
-        let image = t["image"].as_u64().unwrap();
+        let image = t["image"].as_u64().unwrap() as usize;
         let dds = t["files"]["dds"].as_str().unwrap();
+        let erased = t["files"]["erased"].as_str().unwrap();
         let referencing: Vec<&Value> = root["textures"]
             .as_array()
             .unwrap()
@@ -346,27 +350,46 @@ fn check_rewritten_model(rel: &str, job: &Value, files: &BTreeMap<String, Vec<u8
             .filter(|tex| tex["source"] == json!(image))
             .collect();
         assert!(!referencing.is_empty(), "{rel}");
+        assert_eq!(images[image]["mimeType"], json!("image/png"), "{rel}");
         for tex in referencing {
             let k = tex["extensions"]["MSFT_texture_dds"]["source"]
                 .as_u64()
                 .unwrap_or_else(|| panic!("{rel}: texture without MSFT_texture_dds"))
                 as usize;
-            assert_eq!(images[k]["uri"], json!(dds), "{rel}");
             assert_eq!(images[k]["mimeType"], json!("image/vnd-ms.dds"), "{rel}");
+            if glb {
+                assert!(images[k]["bufferView"].is_u64(), "{rel}: DDS not embedded");
+                assert!(
+                    images[image]["bufferView"].is_u64(),
+                    "{rel}: PNG not embedded"
+                );
+            } else {
+                assert_eq!(images[k]["uri"], json!(dds), "{rel}");
+                assert_eq!(images[image]["uri"], json!(erased), "{rel}");
+            }
         }
     }
+    let beside = if glb { BTreeMap::new() } else { files.clone() };
     let model = seamstress::model::load_from_memory(
         name,
         main,
-        files,
+        &beside,
         &seamstress::model::LoadOptions::default(),
     )
     .unwrap_or_else(|e| panic!("{rel}: the rewritten model does not load: {e}"));
-    assert_eq!(
-        model.bindings.len(),
-        job["report"]["textures"].as_array().unwrap().len(),
-        "{rel}"
-    );
+    let textures = job["report"]["textures"].as_array().unwrap();
+    assert_eq!(model.bindings.len(), textures.len(), "{rel}");
+    for (b, t) in model.bindings.iter().zip(textures) {
+        let erased = seamstress::model::Texture::decode(
+            &files[t["files"]["erased"].as_str().unwrap()],
+            16384,
+        )
+        .unwrap();
+        assert!(
+            b.texture.data == erased.data,
+            "{rel}: the fallback is not the erased PNG"
+        );
+    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

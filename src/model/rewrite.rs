@@ -2,11 +2,14 @@
 //!
 //! For every image that has a DDS file, a new image entry points at the DDS
 //! and each texture sampling the image names it in
-//! `extensions.MSFT_texture_dds.source`. The texture's own `source` keeps the
-//! original image, so viewers without the extension still show the model
-//! (the extension is used, not required). Only the JSON changes: a `.gltf`
-//! keeps its buffers and images, a `.glb` keeps its BIN chunk byte for byte,
-//! and the DDS files stay external, referenced by relative URI.
+//! `extensions.MSFT_texture_dds.source`. The texture's own `source` stays
+//! the fallback for viewers without the extension (it is used, not
+//! required), now the erased PNG: the original would show the seams that
+//! were closed. (JPEG sources become PNG there too: a JPEG re-encoding
+//! would add block noise across the seams the erasure just made agree.) A
+//! `.gltf` refers to both files by relative URI and keeps its buffers; a
+//! `.glb` appends both to its BIN chunk (its bytes before stay as they
+//! were), so one file out serves one file in.
 
 use std::collections::BTreeMap;
 
@@ -15,6 +18,7 @@ use serde_json::{json, Map, Value};
 
 pub const EXTENSION: &str = "MSFT_texture_dds";
 pub const DDS_MIME: &str = "image/vnd-ms.dds";
+pub const PNG_MIME: &str = "image/png";
 
 /// Characters escaped in a URI path segment (RFC 3986 keeps unreserved ones).
 const SEGMENT: &AsciiSet = &CONTROLS
@@ -137,16 +141,26 @@ pub fn add_dds_sources(
         if image >= images.len() {
             return Err(RewriteError::NoSuchImage(image));
         }
-        if name.is_empty() || name.starts_with('/') || name.split('/').any(|p| p == "..") {
-            return Err(RewriteError::BadName(name.clone()));
-        }
         dds_image.insert(image, images.len());
-        images.push(json!({
-            "uri": utf8_percent_encode(name, SEGMENT).to_string(),
-            "mimeType": DDS_MIME,
-        }));
+        images.push(json!({ "uri": relative_uri(name)?, "mimeType": DDS_MIME }));
     }
+    reference_dds_images(obj, &dds_image)
+}
 
+/// A file name beside the model as a relative URI.
+fn relative_uri(name: &str) -> Result<String, RewriteError> {
+    if name.is_empty() || name.starts_with('/') || name.split('/').any(|p| p == "..") {
+        return Err(RewriteError::BadName(name.to_string()));
+    }
+    Ok(utf8_percent_encode(name, SEGMENT).to_string())
+}
+
+/// Points every texture whose source is a key of `dds_image` at the DDS
+/// image it maps to, through `MSFT_texture_dds`, and lists the extension.
+fn reference_dds_images(
+    obj: &mut Map<String, Value>,
+    dds_image: &BTreeMap<usize, usize>,
+) -> Result<usize, RewriteError> {
     let mut referenced = 0;
     if let Some(textures) = obj.get_mut("textures").and_then(Value::as_array_mut) {
         for texture in textures.iter_mut() {
@@ -207,9 +221,26 @@ pub fn referenced_files(main: &[u8]) -> Result<Vec<String>, RewriteError> {
     Ok(out)
 }
 
-/// Rewrites a whole model file (`.glb` or `.gltf` bytes) with
-/// [`add_dds_sources`]; the result has the same container as the input.
-pub fn rewrite_model(main: &[u8], dds: &BTreeMap<usize, String>) -> Result<Vec<u8>, RewriteError> {
+/// What one processed image becomes in the rewritten model: the DDS, and
+/// the erased PNG as the fallback for viewers without DDS support (the
+/// original would show the seams again).
+pub struct Replacement<'a> {
+    pub dds_name: &'a str,
+    pub dds: &'a [u8],
+    pub fallback_name: &'a str,
+    pub fallback: &'a [u8],
+}
+
+/// The model (`.glb` or `.gltf` bytes) rewritten to use the DDS files, in
+/// the same container. Each image in `images` becomes its erased PNG and
+/// gains a DDS image that its textures name through `MSFT_texture_dds`.
+/// A `.gltf` refers to both by relative URI (the files sit beside it); a
+/// `.glb` carries both in its binary chunk, so one file out serves one file
+/// in (unless its first buffer is external, when it refers to them too).
+pub fn rewrite_model(
+    main: &[u8],
+    images: &BTreeMap<usize, Replacement<'_>>,
+) -> Result<Vec<u8>, RewriteError> {
     let parse = |json: &[u8]| -> Result<Value, RewriteError> {
         let json = json.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(json);
         serde_json::from_slice(json).map_err(|e| RewriteError::Json(e.to_string()))
@@ -219,16 +250,102 @@ pub fn rewrite_model(main: &[u8], dds: &BTreeMap<usize, String>) -> Result<Vec<u
     if main.starts_with(b"glTF") {
         let glb = split_glb(main)?;
         let mut root = parse(glb.json)?;
-        add_dds_sources(&mut root, dds)?;
+        let mut bin = glb.bin.map(<[u8]>::to_vec).unwrap_or_default();
+        if embed(&mut root, &mut bin, images)? {
+            return Ok(pack_glb(&serialise(&root)?, Some(&bin)));
+        }
+        refer(&mut root, images)?;
         Ok(pack_glb(&serialise(&root)?, glb.bin))
     } else {
         let mut root = parse(main)?;
-        add_dds_sources(&mut root, dds)?;
+        refer(&mut root, images)?;
         let mut out =
             serde_json::to_vec_pretty(&root).map_err(|e| RewriteError::Json(e.to_string()))?;
         out.push(b'\n');
         Ok(out)
     }
+}
+
+/// The images as files beside the model.
+fn refer(root: &mut Value, images: &BTreeMap<usize, Replacement<'_>>) -> Result<(), RewriteError> {
+    let dds: BTreeMap<usize, String> = images
+        .iter()
+        .map(|(&i, r)| (i, r.dds_name.to_string()))
+        .collect();
+    for (&i, r) in images {
+        let uri = relative_uri(r.fallback_name)?;
+        set_image(root, i, json!({ "uri": uri, "mimeType": PNG_MIME }))?;
+    }
+    add_dds_sources(root, &dds).map(drop)
+}
+
+/// The images in the GLB's binary chunk; `false` (nothing changed) when
+/// the first buffer is not the binary chunk.
+fn embed(
+    root: &mut Value,
+    bin: &mut Vec<u8>,
+    images: &BTreeMap<usize, Replacement<'_>>,
+) -> Result<bool, RewriteError> {
+    let buffers = array_mut(root, "buffers")?;
+    match buffers.first() {
+        Some(b) if b.get("uri").is_some() => return Ok(false),
+        Some(_) => {}
+        None => buffers.push(json!({ "byteLength": 0 })),
+    }
+    let mut dds_image = BTreeMap::new();
+    for (&i, r) in images {
+        if i >= array_mut(root, "images")?.len() {
+            return Err(RewriteError::NoSuchImage(i));
+        }
+        let png = push_view(root, bin, r.fallback)?;
+        let dds = push_view(root, bin, r.dds)?;
+        set_image(root, i, json!({ "bufferView": png, "mimeType": PNG_MIME }))?;
+        let list = array_mut(root, "images")?;
+        dds_image.insert(i, list.len());
+        list.push(json!({ "bufferView": dds, "mimeType": DDS_MIME }));
+    }
+    root["buffers"][0]["byteLength"] = json!(bin.len());
+    let obj = root
+        .as_object_mut()
+        .ok_or_else(|| RewriteError::Json("the root is not an object".into()))?;
+    reference_dds_images(obj, &dds_image)?;
+    Ok(true)
+}
+
+/// `root[key]` as an array, created empty when missing.
+fn array_mut<'v>(root: &'v mut Value, key: &str) -> Result<&'v mut Vec<Value>, RewriteError> {
+    root.as_object_mut()
+        .ok_or_else(|| RewriteError::Json("the root is not an object".into()))?
+        .entry(key)
+        .or_insert_with(|| Value::Array(Vec::new()))
+        .as_array_mut()
+        .ok_or_else(|| RewriteError::Json(format!("\"{key}\" is not an array")))
+}
+
+/// Appends `bytes` to the binary chunk (4-byte aligned) as a new buffer view.
+fn push_view(root: &mut Value, bin: &mut Vec<u8>, bytes: &[u8]) -> Result<usize, RewriteError> {
+    bin.resize(bin.len().next_multiple_of(4), 0);
+    let at = bin.len();
+    bin.extend_from_slice(bytes);
+    let views = array_mut(root, "bufferViews")?;
+    views.push(json!({ "buffer": 0, "byteOffset": at, "byteLength": bytes.len() }));
+    Ok(views.len() - 1)
+}
+
+/// Gives image `i` another source (`uri` or `bufferView`, and `mimeType`),
+/// keeping its name and extras.
+fn set_image(root: &mut Value, i: usize, source: Value) -> Result<(), RewriteError> {
+    let image = array_mut(root, "images")?
+        .get_mut(i)
+        .and_then(Value::as_object_mut)
+        .ok_or(RewriteError::NoSuchImage(i))?;
+    for key in ["uri", "bufferView", "mimeType"] {
+        image.remove(key);
+    }
+    if let Value::Object(fields) = source {
+        image.extend(fields);
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -295,17 +412,62 @@ mod tests {
     }
 
     #[test]
-    fn glb_round_trip_keeps_the_bin_chunk() {
+    fn a_glb_carries_the_dds_and_the_fallback_in_its_bin_chunk() {
         let json = serde_json::to_vec(&model()).unwrap();
         let bin = [1u8, 2, 3, 4, 5];
         let glb = pack_glb(&json, Some(&bin));
         assert_eq!(glb.len() % 4, 0);
-        let dds = BTreeMap::from([(1, "b.dds".to_string())]);
-        let out = rewrite_model(&glb, &dds).unwrap();
+        let images = BTreeMap::from([(
+            1,
+            Replacement {
+                dds_name: "b.dds",
+                dds: b"DDS data",
+                fallback_name: "b.erased.png",
+                fallback: b"png",
+            },
+        )]);
+        let out = rewrite_model(&glb, &images).unwrap();
+        assert_eq!(u32_at(&out, 8).unwrap() as usize, out.len());
         let parts = split_glb(&out).unwrap();
-        assert_eq!(&parts.bin.unwrap()[..5], &bin);
+        let bin_out = parts.bin.unwrap();
+        assert_eq!(&bin_out[..5], &bin);
         let root: Value = serde_json::from_slice(parts.json).unwrap();
         assert_eq!(root["textures"][1]["extensions"][EXTENSION]["source"], 2);
-        assert_eq!(u32_at(&out, 8).unwrap() as usize, out.len());
+        let view = |v: &Value| {
+            let v = &root["bufferViews"][v.as_u64().unwrap() as usize];
+            let at = v["byteOffset"].as_u64().unwrap() as usize;
+            assert_eq!(at % 4, 0);
+            &bin_out[at..at + v["byteLength"].as_u64().unwrap() as usize]
+        };
+        assert_eq!(view(&root["images"][2]["bufferView"]), b"DDS data");
+        assert_eq!(root["images"][2]["mimeType"], DDS_MIME);
+        assert_eq!(view(&root["images"][1]["bufferView"]), b"png");
+        assert_eq!(root["images"][1]["mimeType"], PNG_MIME);
+        assert!(root["images"][1].get("uri").is_none());
+        assert_eq!(root["buffers"][0]["byteLength"], bin_out.len());
+        // The untouched image keeps its file.
+        assert_eq!(root["images"][0]["uri"], "a.png");
+    }
+
+    #[test]
+    fn a_gltf_refers_to_the_dds_and_the_erased_png_beside_it() {
+        let main = serde_json::to_vec(&model()).unwrap();
+        let images = BTreeMap::from([(
+            0,
+            Replacement {
+                dds_name: "a b.dds",
+                dds: b"",
+                fallback_name: "a b.erased.png",
+                fallback: b"",
+            },
+        )]);
+        let out = rewrite_model(&main, &images).unwrap();
+        let root: Value = serde_json::from_slice(&out).unwrap();
+        assert_eq!(root["images"][0]["uri"], "a%20b.erased.png");
+        assert_eq!(root["images"][2]["uri"], "a%20b.dds");
+        assert_eq!(
+            referenced_files(&out).unwrap(),
+            ["a b.erased.png", "b.png", "a b.dds"]
+        );
     }
 }

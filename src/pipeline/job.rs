@@ -7,7 +7,7 @@ use std::collections::BTreeMap;
 use std::time::Instant;
 
 use crate::budget::{self, Limits};
-use crate::model::rewrite::{referenced_files, rewrite_model};
+use crate::model::rewrite::{referenced_files, rewrite_model, Replacement};
 use crate::model::{self, LoadError, LoadOptions, Resolver};
 
 use super::progress::{Progress, Sink, Stop};
@@ -143,42 +143,54 @@ fn base_name(name: &str) -> &str {
     name.rsplit(['/', '\\']).next().unwrap_or(name)
 }
 
-/// Adds the model rewritten to use the DDS files (`MSFT_texture_dds`) and,
-/// for a `.gltf`, the files it refers to, when the report lists DDS files.
-/// What stands in the way is a warning, not a failure: the DDS files are
-/// the job's point.
+/// Adds the model rewritten to use the DDS files (`MSFT_texture_dds`), with
+/// the erased PNGs as the fallback images, and for a `.gltf` the files it
+/// still refers to, when the report lists DDS files. What stands in the way
+/// is a warning, not a failure: the DDS files are the job's point.
 fn rewritten_model(
     input: &JobInput<'_>,
     report: &Report,
     files: &mut Vec<OutputFile>,
     warnings: &mut Vec<String>,
 ) {
-    let dds: BTreeMap<usize, String> = report
-        .textures
-        .iter()
-        .filter_map(|t| Some((t.image, t.files.dds.clone()?)))
-        .collect();
-    if dds.is_empty() {
+    let bytes_of = |name: &str| files.iter().find(|f| f.name == name).map(|f| &f.bytes[..]);
+    let mut images = BTreeMap::new();
+    for t in &report.textures {
+        let Some(dds_name) = t.files.dds.as_deref() else {
+            continue;
+        };
+        if let (Some(dds), Some(fallback)) = (bytes_of(dds_name), bytes_of(&t.files.erased)) {
+            images.insert(
+                t.image,
+                Replacement {
+                    dds_name,
+                    dds,
+                    fallback_name: &t.files.erased,
+                    fallback,
+                },
+            );
+        }
+    }
+    if images.is_empty() {
         return;
     }
-    let beside = match referenced_files(input.main) {
-        Ok(list) => list,
-        Err(e) => return warnings.push(format!("no rewritten model: {e}")),
-    };
-    let model_name = base_name(input.name).to_string();
-    let taken = |name: &str| files.iter().any(|f| f.name == name);
-    if let Some(clash) = std::iter::once(&model_name)
-        .chain(&beside)
-        .find(|n| taken(n))
-    {
-        return warnings.push(format!(
-            "no rewritten model: the model's file {clash:?} has the name of an output"
-        ));
-    }
-    let bytes = match rewrite_model(input.main, &dds) {
+    let bytes = match rewrite_model(input.main, &images) {
         Ok(b) => b,
         Err(e) => return warnings.push(format!("no rewritten model: {e}")),
     };
+    drop(images);
+    let taken = |name: &str| files.iter().any(|f| f.name == name);
+    // The files the rewritten model refers to that the job did not make.
+    let beside: Vec<String> = match referenced_files(&bytes) {
+        Ok(list) => list.into_iter().filter(|n| !taken(n)).collect(),
+        Err(e) => return warnings.push(format!("no rewritten model: {e}")),
+    };
+    let model_name = base_name(input.name).to_string();
+    if taken(&model_name) {
+        return warnings.push(format!(
+            "no rewritten model: the model's name {model_name:?} is the name of an output"
+        ));
+    }
     let mut copied = Vec::with_capacity(beside.len());
     for name in beside {
         match input.files.read(&name) {
