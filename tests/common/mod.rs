@@ -29,6 +29,13 @@ pub const SCHEMATHESIS: Tool = Tool {
     install: "python3 -m pip install schemathesis",
 };
 
+/// The Khronos glTF validator (npm `gltf-validator`, on NODE_PATH) under node.
+pub const GLTF_VALIDATOR: Tool = Tool {
+    name: "node with the npm package gltf-validator (on NODE_PATH)",
+    probe: &["node", "-e", "require('gltf-validator')"],
+    install: "npm install --prefix DIR gltf-validator && export NODE_PATH=DIR/node_modules",
+};
+
 pub struct Tool {
     name: &'static str,
     probe: &'static [&'static str],
