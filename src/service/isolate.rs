@@ -130,7 +130,8 @@ pub fn run(
         .stdout(Stdio::piped())
         .stderr(Stdio::piped());
     let limit = iso.address_space;
-    // SAFETY: setrlimit is async-signal-safe and touches only the child.
+    // SAFETY: setrlimit and prctl are async-signal-safe and touch only the
+    // child.
     unsafe {
         cmd.pre_exec(move || {
             let lim = libc::rlimit {
@@ -138,6 +139,12 @@ pub fn run(
                 rlim_max: limit,
             };
             if libc::setrlimit(libc::RLIMIT_AS, &lim) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            // A server killed outright takes its jobs' processes with it
+            // (the worker thread that started them lives as long as it);
+            // the restarted server runs those jobs again.
+            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) != 0 {
                 return Err(std::io::Error::last_os_error());
             }
             Ok(())
