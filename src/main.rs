@@ -19,7 +19,14 @@ use seamstress::pipeline::{
 use seamstress::seam::erase::Mode;
 
 #[derive(Parser)]
-#[command(name = "seamstress", version, about = "Seam erasure for glTF textures")]
+#[command(
+    name = "seamstress",
+    version,
+    about = "Seam erasure for glTF textures",
+    after_help = "Logs go to standard error: warnings and errors for `process`, each request \
+                  and job for `serve`. SEAMSTRESS_LOG sets what is logged (e.g. \
+                  SEAMSTRESS_LOG=debug, or seamstress=debug,tower_http=info)."
+)]
 struct Cli {
     /// Log format on standard error.
     #[arg(long, global = true, value_enum, default_value = "text")]
@@ -28,7 +35,7 @@ struct Cli {
     command: Command,
 }
 
-#[derive(Clone, Copy, clap::ValueEnum)]
+#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 enum LogFormat {
     Text,
     Json,
@@ -121,34 +128,33 @@ fn main() -> ExitCode {
         Command::Process(_) | Command::RunJob { .. } => "warn",
         Command::Serve(_) => "info",
     };
-    init_logging(cli.log_format, default_level);
+    let format = cli.log_format;
+    init_logging(format, default_level);
     match cli.command {
         Command::Process(args) => match process(&args) {
             Ok(()) => ExitCode::SUCCESS,
-            Err(Failure::BadInput(msg)) => {
-                eprintln!("error: {msg}");
-                ExitCode::from(2)
-            }
-            Err(Failure::Internal(e)) => {
-                eprintln!("error: {e:#}");
-                ExitCode::from(1)
-            }
+            Err(Failure::BadInput(msg)) => fail(format, 2, &msg),
+            Err(Failure::Internal(e)) => fail(format, 1, &format!("{e:#}")),
         },
         Command::RunJob { dir } => match seamstress::service::run_job(&dir) {
             Ok(()) => ExitCode::SUCCESS,
-            Err(e) => {
-                eprintln!("error: {}: {e}", dir.display());
-                ExitCode::from(1)
-            }
+            Err(e) => fail(format, 1, &format!("{}: {e}", dir.display())),
         },
         Command::Serve(args) => match seamstress::service::serve(*args) {
             Ok(()) => ExitCode::SUCCESS,
-            Err(e) => {
-                eprintln!("error: {e}");
-                ExitCode::from(if e.is_usage() { 2 } else { 1 })
-            }
+            Err(e) => fail(format, if e.is_usage() { 2 } else { 1 }, &e.to_string()),
         },
     }
+}
+
+/// Ends the program with `status`, saying why on standard error: one line,
+/// and with `--log-format json` a JSON line like every other.
+fn fail(format: LogFormat, status: u8, message: &str) -> ExitCode {
+    match format {
+        LogFormat::Text => eprintln!("error: {message}"),
+        LogFormat::Json => tracing::error!(status, error = message, "exiting"),
+    }
+    ExitCode::from(status)
 }
 
 /// An option's word, as the HTTP options and the report spell it: the
@@ -160,8 +166,11 @@ fn word<T: serde::de::DeserializeOwned>(s: &str) -> Result<T, String> {
 fn init_logging(format: LogFormat, default_level: &str) {
     let filter = tracing_subscriber::EnvFilter::try_from_env("SEAMSTRESS_LOG")
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default_level));
+    // Colours only for a person at a terminal, never into files or pipes.
+    let ansi = std::io::IsTerminal::is_terminal(&std::io::stderr());
     let builder = tracing_subscriber::fmt()
         .with_env_filter(filter)
+        .with_ansi(ansi)
         .with_writer(std::io::stderr);
     match format {
         LogFormat::Text => builder.init(),

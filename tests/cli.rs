@@ -334,3 +334,35 @@ fn rewritten_models_pass_the_khronos_validator() {
         }
     }
 }
+
+#[test]
+fn logs_are_plain_when_piped_and_all_json_when_asked() {
+    let missing = "/nonexistent/model.glb";
+    let o = seamstress(&["--log-format", "json", "process", missing, "--out", "o"]);
+    assert_eq!(o.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!err.trim().is_empty());
+    for line in err.lines() {
+        let v: Value = serde_json::from_str(line).unwrap_or_else(|e| panic!("{e}: {line}"));
+        assert!(
+            v["fields"]["error"].as_str().unwrap().contains(missing),
+            "{line}"
+        );
+    }
+    // A model whose erasure repaints a chart logs a warning: no colour codes
+    // into a pipe.
+    let out = scratch("plain-logs");
+    let o = seamstress(&[
+        "process",
+        shared().join("assets/Fox/Fox.gltf").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--erase-all",
+    ]);
+    assert!(o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("WARN"), "{err}");
+    assert!(!err.contains('\u{1b}'), "{err}");
+    let help = seamstress(&["--help"]);
+    assert!(String::from_utf8_lossy(&help.stdout).contains("SEAMSTRESS_LOG"));
+}
