@@ -1188,3 +1188,53 @@ async fn a_job_that_runs_out_of_memory_fails_alone() {
                 .is_none()
     );
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn downloads_resume_with_byte_ranges() {
+    let data = scratch("ranges");
+    let s = Server::start(&data, &[]);
+    let c = client();
+    let small = std::fs::read(assets().join("cube/cube_gradient_128.glb")).unwrap();
+    let job = accepted(submit_raw(&c, &s, small, "small.glb", "").await).await;
+    let job = finish(&c, &s, job["id"].as_str().unwrap()).await;
+    let f = job["files"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|f| f["name"].as_str().unwrap().ends_with(".dds"))
+        .unwrap();
+    let url = s.url(f["url"].as_str().unwrap());
+    let whole = c.get(&url).send().await.unwrap();
+    assert_eq!(whole.headers()["accept-ranges"], "bytes");
+    let etag = whole.headers()["etag"].to_str().unwrap().to_string();
+    let whole = whole.bytes().await.unwrap();
+    let len = whole.len();
+
+    let get = |range: &str, if_range: Option<&str>| {
+        let mut r = c.get(&url).header("range", range);
+        if let Some(tag) = if_range {
+            r = r.header("if-range", tag);
+        }
+        r.send()
+    };
+    // The head, then the rest: together the file.
+    let head = get("bytes=0-99", None).await.unwrap();
+    assert_eq!(head.status(), StatusCode::PARTIAL_CONTENT);
+    assert_eq!(
+        head.headers()["content-range"],
+        format!("bytes 0-99/{len}").as_str()
+    );
+    let mut joined = head.bytes().await.unwrap().to_vec();
+    let rest = get("bytes=100-", Some(&etag)).await.unwrap();
+    assert_eq!(rest.status(), StatusCode::PARTIAL_CONTENT);
+    joined.extend_from_slice(&rest.bytes().await.unwrap());
+    assert!(joined == whole, "the two ranges are not the file");
+    // Past the end: 416 with the size.
+    let (status, body) = json_of(get(&format!("bytes={len}-"), None).await.unwrap()).await;
+    assert_eq!(status, StatusCode::RANGE_NOT_SATISFIABLE, "{body}");
+    assert_eq!(body["code"], "range_not_satisfiable");
+    // Another version's ETag: the whole file.
+    let r = get("bytes=0-9", Some("\"other\"")).await.unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    assert_eq!(r.bytes().await.unwrap().len(), len);
+}

@@ -739,6 +739,50 @@ fn etag_matches(headers: &HeaderMap, etag: &str) -> bool {
         .any(|t| t == "*" || t == etag || t.strip_prefix("W/") == Some(etag))
 }
 
+/// What a `Range` header asks of a file of `len` bytes.
+#[derive(Debug, PartialEq, Eq)]
+enum Span {
+    Whole,
+    /// First and last byte, inclusive.
+    Part(u64, u64),
+    Unsatisfiable,
+}
+
+/// One byte range (`bytes=a-b`, `bytes=a-`, `bytes=-n`) is served; a header
+/// that is malformed or asks for several ranges gets the whole file, as
+/// RFC 9110 lets a server do.
+fn byte_range(header: Option<&str>, len: u64) -> Span {
+    let Some(spec) = header.and_then(|h| h.trim().strip_prefix("bytes=")) else {
+        return Span::Whole;
+    };
+    if spec.contains(',') {
+        return Span::Whole;
+    }
+    let Some((a, b)) = spec.trim().split_once('-') else {
+        return Span::Whole;
+    };
+    let num = |t: &str| -> Option<u64> {
+        (!t.is_empty() && t.bytes().all(|c| c.is_ascii_digit()))
+            .then(|| t.parse().ok())
+            .flatten()
+    };
+    let (first, last) = match (num(a.trim()), num(b.trim())) {
+        (Some(first), Some(last)) if first <= last => (first, last.min(len.saturating_sub(1))),
+        (Some(first), None) if b.trim().is_empty() => (first, len.saturating_sub(1)),
+        (None, Some(suffix)) if a.trim().is_empty() => {
+            if suffix == 0 {
+                return Span::Unsatisfiable;
+            }
+            (len.saturating_sub(suffix), len.saturating_sub(1))
+        }
+        _ => return Span::Whole,
+    };
+    if len == 0 || first >= len {
+        return Span::Unsatisfiable;
+    }
+    Span::Part(first, last)
+}
+
 async fn get_file(
     State(app): State<Shared>,
     Path((id, name)): Path<(String, String)>,
@@ -773,13 +817,55 @@ async fn get_file(
             tracing::error!(job_id = %job.id, file = %entry.name, "result file missing");
             ApiError::internal("the file is missing from the file store")
         })?;
-        app.metrics
-            .bytes_out
-            .fetch_add(bytes.len() as u64, Ordering::Relaxed);
-        let mut r = bytes.into_response();
-        if let Ok(v) = HeaderValue::from_str(&entry.content_type) {
-            r.headers_mut().insert(header::CONTENT_TYPE, v);
-        }
+        let len = bytes.len() as u64;
+        // A Range for another version of the file (If-Range) gets it whole.
+        let if_range_ok = headers
+            .get(header::IF_RANGE)
+            .is_none_or(|v| v.to_str().is_ok_and(|v| v.trim() == etag));
+        let range = headers
+            .get(header::RANGE)
+            .and_then(|v| v.to_str().ok())
+            .filter(|_| if_range_ok);
+        let mut r = match byte_range(range, len) {
+            Span::Whole => {
+                let mut r = bytes.into_response();
+                if let Ok(v) = HeaderValue::from_str(&entry.content_type) {
+                    r.headers_mut().insert(header::CONTENT_TYPE, v);
+                }
+                r
+            }
+            // A piece of a file is bytes, whatever the whole is: a piece of
+            // report.json is not JSON.
+            Span::Part(first, last) => {
+                let part = bytes[first as usize..=last as usize].to_vec();
+                let mut r = (StatusCode::PARTIAL_CONTENT, part).into_response();
+                if let Ok(v) = HeaderValue::from_str(&format!("bytes {first}-{last}/{len}")) {
+                    r.headers_mut().insert(header::CONTENT_RANGE, v);
+                }
+                r
+            }
+            Span::Unsatisfiable => {
+                let mut r = ApiError::new(
+                    StatusCode::RANGE_NOT_SATISFIABLE,
+                    "range_not_satisfiable",
+                    format!("the file holds {len} bytes"),
+                )
+                .into_response();
+                if let Ok(v) = HeaderValue::from_str(&format!("bytes */{len}")) {
+                    r.headers_mut().insert(header::CONTENT_RANGE, v);
+                }
+                return Ok(r);
+            }
+        };
+        app.metrics.bytes_out.fetch_add(
+            r.headers()
+                .get(header::CONTENT_LENGTH)
+                .and_then(|v| v.to_str().ok()?.parse().ok())
+                .unwrap_or(len),
+            Ordering::Relaxed,
+        );
+        r.headers_mut()
+            .insert(header::ACCEPT_RANGES, HeaderValue::from_static("bytes"));
         r
     };
     let h = resp.headers_mut();
@@ -852,6 +938,22 @@ mod tests {
         assert!(parse_query(Some("colour=red")).is_err());
         assert!(parse_query(Some("mode=sideways")).is_err());
         assert!(parse_query(None).unwrap().1.is_none());
+    }
+
+    #[test]
+    fn byte_ranges() {
+        assert_eq!(byte_range(None, 10), Span::Whole);
+        assert_eq!(byte_range(Some("bytes=0-3"), 10), Span::Part(0, 3));
+        assert_eq!(byte_range(Some("bytes=4-"), 10), Span::Part(4, 9));
+        assert_eq!(byte_range(Some("bytes=-3"), 10), Span::Part(7, 9));
+        assert_eq!(byte_range(Some("bytes=8-100"), 10), Span::Part(8, 9));
+        assert_eq!(byte_range(Some("bytes=-100"), 10), Span::Part(0, 9));
+        assert_eq!(byte_range(Some("bytes=10-"), 10), Span::Unsatisfiable);
+        assert_eq!(byte_range(Some("bytes=-0"), 10), Span::Unsatisfiable);
+        assert_eq!(byte_range(Some("bytes=0-1,4-5"), 10), Span::Whole);
+        assert_eq!(byte_range(Some("bytes=5-2"), 10), Span::Whole);
+        assert_eq!(byte_range(Some("items=0-1"), 10), Span::Whole);
+        assert_eq!(byte_range(Some("bytes=x-1"), 10), Span::Whole);
     }
 
     #[test]
