@@ -15,12 +15,14 @@
 //! `SEAMSTRESS_FUZZ_FIRST=8123 SEAMSTRESS_FUZZ_CASES=1`. Failing inputs are
 //! kept in the folder the test prints.
 
-use std::os::unix::process::{CommandExt, ExitStatusExt};
+use std::os::unix::process::ExitStatusExt;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
+
+mod common;
 
 const SEEDS: [&str; 3] = [
     "BoxTextured/BoxTextured-glTF-Binary/BoxTextured.glb",
@@ -179,7 +181,7 @@ fn mutate(seed: &[u8], rng: &mut Rng) -> Vec<u8> {
                         let other = [1u32, 4, 211, 16384][rng.below(4)];
                         glb.bin[at + 4..at + 8].copy_from_slice(&side.to_be_bytes());
                         glb.bin[at + 8..at + 12].copy_from_slice(&other.to_be_bytes());
-                        let crc = crc32(&glb.bin[at..at + 17]);
+                        let crc = common::crc32(&glb.bin[at..at + 17]);
                         glb.bin[at + 17..at + 21].copy_from_slice(&crc.to_be_bytes());
                     }
                 }
@@ -204,21 +206,6 @@ fn find(hay: &[u8], needle: &[u8]) -> Option<usize> {
     hay.windows(needle.len()).position(|w| w == needle)
 }
 
-fn crc32(bytes: &[u8]) -> u32 {
-    let mut c = !0u32;
-    for &b in bytes {
-        c ^= u32::from(b);
-        for _ in 0..8 {
-            c = if c & 1 != 0 {
-                0xEDB8_8320 ^ (c >> 1)
-            } else {
-                c >> 1
-            };
-        }
-    }
-    !c
-}
-
 /// How a case ended.
 enum Outcome {
     Done,
@@ -233,19 +220,7 @@ fn run_case(input: &Path, out: &Path) -> Outcome {
         .arg(input)
         .stdout(Stdio::null())
         .stderr(Stdio::piped());
-    // SAFETY: setrlimit is async-signal-safe and touches only the child.
-    unsafe {
-        cmd.pre_exec(|| {
-            let lim = libc::rlimit {
-                rlim_cur: ADDRESS_SPACE,
-                rlim_max: ADDRESS_SPACE,
-            };
-            if libc::setrlimit(libc::RLIMIT_AS, &lim) != 0 {
-                return Err(std::io::Error::last_os_error());
-            }
-            Ok(())
-        });
-    }
+    common::limit_address_space(&mut cmd, ADDRESS_SPACE);
     let mut child = cmd.spawn().expect("seamstress starts");
     let started = Instant::now();
     let status = loop {

@@ -2,7 +2,6 @@
 //! ask for unbounded memory or time are refused before the work, with the
 //! quantity, its value and the limit named, and exit status 2.
 
-use std::os::unix::process::CommandExt;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
@@ -30,22 +29,6 @@ fn seamstress(args: &[&str]) -> std::process::Output {
         .expect("seamstress runs")
 }
 
-/// CRC-32 (PNG's) of a chunk's type and data.
-fn crc32(bytes: &[u8]) -> u32 {
-    let mut c = !0u32;
-    for &b in bytes {
-        c ^= u32::from(b);
-        for _ in 0..8 {
-            c = if c & 1 != 0 {
-                0xEDB8_8320 ^ (c >> 1)
-            } else {
-                c >> 1
-            };
-        }
-    }
-    !c
-}
-
 /// BoxTextured with its PNG replaced by one whose header announces
 /// `side`×`side` texels, followed by 64 KiB of image data that is not a
 /// valid zlib stream: the header is all a budget may read.
@@ -64,7 +47,7 @@ fn box_announcing(side: u32, dir: &Path) -> PathBuf {
     for chunk in [&ihdr, &idat, &b"IEND".to_vec()] {
         png.extend((chunk.len() as u32 - 4).to_be_bytes());
         png.extend(chunk.iter());
-        png.extend(crc32(chunk).to_be_bytes());
+        png.extend(common::crc32(chunk).to_be_bytes());
     }
     std::fs::write(dir.join("CesiumLogoFlat.png"), png).unwrap();
     dir.join("BoxTextured.gltf")
@@ -145,19 +128,7 @@ fn the_default_limit_follows_the_address_space_limit() {
         "--out",
         dir.join("out").to_str().unwrap(),
     ]);
-    // SAFETY: setrlimit is async-signal-safe and touches only this child.
-    unsafe {
-        cmd.pre_exec(|| {
-            let lim = libc::rlimit {
-                rlim_cur: 2 << 30,
-                rlim_max: 2 << 30,
-            };
-            if libc::setrlimit(libc::RLIMIT_AS, &lim) != 0 {
-                return Err(std::io::Error::last_os_error());
-            }
-            Ok(())
-        });
-    }
+    common::limit_address_space(&mut cmd, 2 << 30);
     let o = cmd.output().expect("seamstress runs");
     refused(&o, "estimated memory", &model);
 }

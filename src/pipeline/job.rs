@@ -8,7 +8,7 @@ use std::time::Instant;
 
 use crate::budget::{self, Limits};
 use crate::model::rewrite::{referenced_files, rewrite_model, Replacement};
-use crate::model::{self, LoadError, LoadOptions, Resolver};
+use crate::model::{self, LoadError, LoadOptions, Plan, Resolver};
 
 use super::progress::{Progress, Sink, Stop};
 use super::{run_reporting, OutputFile, PipelineError, ProcessOptions, Report};
@@ -78,6 +78,17 @@ impl From<LoadError> for JobError {
     }
 }
 
+/// Reads and checks everything of the input but its texels, and holds the
+/// job to its budget: what [`run_job`] does before any large allocation,
+/// and what a service checks an upload with before queueing it.
+pub fn admit(input: &JobInput<'_>, settings: &JobSettings) -> Result<Plan, JobError> {
+    let plan = model::plan_from_memory(input.name, input.main, input.files, &settings.load)?;
+    let need = budget::need(&plan, &settings.process);
+    budget::check(&need, &settings.limits)
+        .map_err(|over| JobError::TooLarge(format!("{}: {over}", plan.file())))?;
+    Ok(plan)
+}
+
 /// Runs the whole job; `sink` hears its progress and may stop it.
 pub fn run_job(
     input: &JobInput<'_>,
@@ -91,11 +102,7 @@ pub fn run_job(
     };
     sink.progress(&at("load", 0.0)).map_err(JobError::Stopped)?;
     let t = Instant::now();
-    let plan = model::plan_from_memory(input.name, input.main, input.files, &settings.load)?;
-    let need = budget::need(&plan, &settings.process);
-    budget::check(&need, &settings.limits)
-        .map_err(|over| JobError::TooLarge(format!("{}: {over}", plan.file())))?;
-    let model = plan.decode()?;
+    let model = admit(input, settings)?.decode()?;
     let mut timings = JobTimings {
         load: t.elapsed().as_millis() as u64,
         ..JobTimings::default()

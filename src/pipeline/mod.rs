@@ -11,7 +11,7 @@
 pub mod job;
 mod progress;
 
-pub use job::{run_job, JobError, JobInput, JobOutput, JobSettings, JobTimings};
+pub use job::{admit, run_job, JobError, JobInput, JobOutput, JobSettings, JobTimings};
 pub use progress::{NoSink, Progress, Sink, Stop};
 
 use std::collections::BTreeMap;

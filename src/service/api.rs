@@ -19,13 +19,14 @@ use tracing::Instrument;
 
 use super::app::{blocking, Shared, CANCELED};
 use super::data_dir;
-use super::engine::{self, Rejection};
+use super::engine;
 use super::error::{self, ApiError};
 use super::job::{self, is_job_id, now_ms, random_id, InputInfo, Job, JobState, Progress};
 use super::options::{JobOptions, QUERY_OPTIONS};
 use super::store::{keys, StoreError, Submitted};
 use super::upload::{base_name, safe_name, Bundle};
 use crate::budget::Limits;
+use crate::pipeline::JobError;
 
 pub const OPENAPI: &str = include_str!("../../openapi.yaml");
 
@@ -519,21 +520,21 @@ async fn submit(
         }
         match engine::validate(&bundle, &job.options, max_texture_size, &limits) {
             Ok(_) => {}
-            Err(e @ Rejection::TooLarge { .. }) => {
+            Err(JobError::TooLarge(message)) => {
                 return Err(ApiError::new(
                     StatusCode::UNPROCESSABLE_ENTITY,
                     "too_large",
-                    e.to_string(),
+                    message,
                 ));
             }
-            Err(Rejection::Load(e)) if e.is_bad_input() => {
+            Err(JobError::BadInput(message)) => {
                 return Err(ApiError::new(
                     StatusCode::UNPROCESSABLE_ENTITY,
                     "invalid_model",
-                    e.to_string(),
+                    message,
                 ));
             }
-            Err(Rejection::Load(e)) => {
+            Err(e) => {
                 tracing::error!(error = %e, "cannot check the upload");
                 return Err(ApiError::internal("cannot check the upload"));
             }

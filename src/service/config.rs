@@ -205,53 +205,29 @@ impl Config {
                     .map_err(|message| ConfigError::Invalid { option, message }),
                 None => Ok(None),
             };
-        let max_body = match args
-            .max_body
+        let size = |option: &'static str, flag: &Option<String>, file: &Option<Quantity>| match flag
             .clone()
-            .or_else(|| file.max_body.as_ref().map(Quantity::text))
+            .or_else(|| file.as_ref().map(Quantity::text))
         {
-            Some(text) => parse_size(&text).map_err(|message| ConfigError::Invalid {
+            Some(text) => crate::budget::parse_bytes(&text)
+                .map(Some)
+                .map_err(|message| ConfigError::Invalid { option, message }),
+            None => Ok(None),
+        };
+        let max_body = match size("max_body", &args.max_body, &file.max_body)? {
+            Some(n) => usize::try_from(n).map_err(|_| ConfigError::Invalid {
                 option: "max_body",
-                message,
+                message: format!("{n} bytes is too large"),
             })?,
             None => d.max_body,
         };
-        let max_memory =
-            match args
-                .max_memory
-                .clone()
-                .or_else(|| file.max_memory.as_ref().map(Quantity::text))
-            {
-                Some(text) => Some(crate::budget::parse_bytes(&text).map_err(|message| {
-                    ConfigError::Invalid {
-                        option: "max_memory",
-                        message,
-                    }
-                })?),
-                None => None,
-            };
-        let job_address_space = match args
-            .job_address_space
-            .clone()
-            .or_else(|| file.job_address_space.as_ref().map(Quantity::text))
-        {
-            Some(text) => Some(parse_size(&text).map_err(|message| ConfigError::Invalid {
-                option: "job_address_space",
-                message,
-            })? as u64),
-            None => None,
-        };
-        let min_free = match args
-            .min_free
-            .clone()
-            .or_else(|| file.min_free.as_ref().map(Quantity::text))
-        {
-            Some(text) => parse_size(&text).map_err(|message| ConfigError::Invalid {
-                option: "min_free",
-                message,
-            })? as u64,
-            None => d.min_free,
-        };
+        let max_memory = size("max_memory", &args.max_memory, &file.max_memory)?;
+        let job_address_space = size(
+            "job_address_space",
+            &args.job_address_space,
+            &file.job_address_space,
+        )?;
+        let min_free = size("min_free", &args.min_free, &file.min_free)?.unwrap_or(d.min_free);
         let token_specs = if args.tokens.is_empty() {
             file.tokens.clone().unwrap_or_default()
         } else {
@@ -427,16 +403,10 @@ fn address_space_for(max_memory: u64) -> u64 {
         .max(max_memory.saturating_add(2 << 30))
 }
 
-/// `1048576`, `64KiB`, `512MiB`, `2GiB` (also K, M, G, T, KB, MB, ..., all
-/// binary): [`crate::budget::parse_bytes`] as a `usize`.
-pub fn parse_size(text: &str) -> Result<usize, String> {
-    let n = crate::budget::parse_bytes(text)?;
-    usize::try_from(n).map_err(|_| format!("{text:?} is too large"))
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::budget::parse_bytes;
 
     #[test]
     fn durations_and_sizes() {
@@ -445,9 +415,9 @@ mod tests {
         assert_eq!(parse_duration("7d").unwrap(), Duration::from_secs(604800));
         assert!(parse_duration("7w").is_err());
         assert!(parse_duration("m").is_err());
-        assert_eq!(parse_size("512MiB").unwrap(), 512 << 20);
-        assert_eq!(parse_size("10").unwrap(), 10);
-        assert!(parse_size("1XB").is_err());
+        assert_eq!(parse_bytes("512MiB").unwrap(), 512 << 20);
+        assert_eq!(parse_bytes("10").unwrap(), 10);
+        assert!(parse_bytes("1XB").is_err());
     }
 
     #[test]

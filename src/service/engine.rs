@@ -3,8 +3,8 @@
 
 use serde_json::value::RawValue;
 
-use crate::budget::{self, Limits, OverBudget};
-use crate::model::{self, LoadError, LoadOptions, Plan};
+use crate::budget::Limits;
+use crate::model::LoadOptions;
 use crate::pipeline::{self, JobError, JobInput, JobSettings, Progress};
 
 use super::job::StageTimings;
@@ -46,17 +46,24 @@ pub fn load_options(opts: &ResolvedOptions, max_texture_size: u32) -> LoadOption
     }
 }
 
-/// Why an upload is refused before it is queued.
-#[derive(Debug, thiserror::Error)]
-pub enum Rejection {
-    #[error(transparent)]
-    Load(#[from] LoadError),
-    /// Over the job budget: `too_large`.
-    #[error("{file}: {over}")]
-    TooLarge { file: String, over: OverBudget },
+/// What a job over `bundle` is told.
+fn settings(opts: &ResolvedOptions, max_texture_size: u32, limits: &Limits) -> JobSettings {
+    JobSettings {
+        process: process_options(opts),
+        load: load_options(opts, max_texture_size),
+        limits: *limits,
+    }
 }
 
-/// Checks an upload the way loading does, short of decoding the pixels
+fn input(bundle: &Bundle) -> JobInput<'_> {
+    JobInput {
+        name: &bundle.main_name,
+        main: &bundle.main,
+        files: &bundle.files,
+    }
+}
+
+/// Checks an upload as the job will, short of decoding the pixels
 /// (containers, JSON, schema, buffers, accessors, URIs, every image's
 /// header against the size limit), and holds the job to its budget.
 pub fn validate(
@@ -64,19 +71,8 @@ pub fn validate(
     opts: &ResolvedOptions,
     max_texture_size: u32,
     limits: &Limits,
-) -> Result<Plan, Rejection> {
-    let plan = model::plan_from_memory(
-        &bundle.main_name,
-        &bundle.main,
-        &bundle.files,
-        &load_options(opts, max_texture_size),
-    )?;
-    let need = budget::need(&plan, &process_options(opts));
-    budget::check(&need, limits).map_err(|over| Rejection::TooLarge {
-        file: plan.file().to_string(),
-        over,
-    })?;
-    Ok(plan)
+) -> Result<(), JobError> {
+    pipeline::admit(&input(bundle), &settings(opts, max_texture_size, limits)).map(drop)
 }
 
 /// Runs one job: [`pipeline::run_job`] over the upload. `checkpoint` is
@@ -89,18 +85,9 @@ pub fn run(
     limits: &Limits,
     checkpoint: &mut dyn FnMut(&str, f64) -> Result<(), Stop>,
 ) -> Result<Produced, EngineError> {
-    let settings = JobSettings {
-        process: process_options(opts),
-        load: load_options(opts, max_texture_size),
-        limits: *limits,
-    };
-    let input = JobInput {
-        name: &bundle.main_name,
-        main: &bundle.main,
-        files: &bundle.files,
-    };
+    let settings = settings(opts, max_texture_size, limits);
     let mut sink = |at: &Progress<'_>| checkpoint(at.stage, at.fraction);
-    let out = pipeline::run_job(&input, &settings, &mut sink).map_err(|e| match e {
+    let out = pipeline::run_job(&input(bundle), &settings, &mut sink).map_err(|e| match e {
         JobError::BadInput(m) => EngineError::BadInput(m),
         JobError::TooLarge(m) => EngineError::TooLarge(m),
         JobError::Failed(m) => EngineError::Failed(m),
