@@ -13,5 +13,6 @@ pub mod mips;
 pub mod model;
 pub mod picture;
 pub mod pipeline;
+pub mod resize;
 pub mod seam;
 pub mod service;

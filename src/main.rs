@@ -13,8 +13,8 @@ use seamstress::model::rewrite::referenced_files;
 use seamstress::model::{DirResolver, LoadOptions};
 use seamstress::pipeline::job::REPORT_NAME;
 use seamstress::pipeline::{
-    self, Format, JobError, JobInput, JobSettings, Method, NoSink, ProcessOptions, Target,
-    DEFAULT_SEAM_TOLERANCE, DEFAULT_SEAM_WEIGHT,
+    self, AlphaOption, Format, JobError, JobInput, JobSettings, Method, NoSink, ProcessOptions,
+    Resize, Target, DEFAULT_SEAM_TOLERANCE, DEFAULT_SEAM_WEIGHT,
 };
 use seamstress::seam::erase::Mode;
 
@@ -108,6 +108,18 @@ struct ProcessArgs {
     /// robust (all three at once: one file for any GPU).
     #[arg(long, value_parser = word::<Target>, default_value = "robust")]
     decoder: Target,
+    /// A texture whose sides are not multiples of 4 (which WebGL refuses):
+    /// mul4 pads it to the next multiple of 4 and scales the rewritten
+    /// model's UVs for it (KHR_texture_transform), or resamples it where
+    /// padding cannot be exact (tiling UVs); pow2 resamples to powers of
+    /// two; none leaves it.
+    #[arg(long, value_parser = word::<Resize>, default_value = "mul4")]
+    resize: Resize,
+    /// What the DDS keeps of a base colour's alpha: auto (MASK materials:
+    /// BC1 with one-bit alpha; BLEND, or alpha below 1 in the image: BC3),
+    /// drop (opaque BC1), bc1a or bc3.
+    #[arg(long, value_parser = word::<AlphaOption>, default_value = "auto")]
+    alpha: AlphaOption,
     /// Also write <name>.seams.png: the seams coloured by what was done to
     /// them, with close-ups of the worst.
     #[arg(long)]
@@ -238,6 +250,8 @@ fn process(args: &ProcessArgs) -> Result<(), Failure> {
         erase_all: args.erase_all,
         pictures: args.pictures,
         decoder: args.decoder,
+        resize: args.resize,
+        alpha: args.alpha,
     };
     let limits = Limits {
         max_memory: args.max_memory.unwrap_or_else(budget::usable_memory),

@@ -25,12 +25,16 @@ fn seamstress(args: &[&str]) -> std::process::Output {
         .expect("seamstress runs")
 }
 
+/// Processed at the images' own sizes (`--resize none`): the evaluator
+/// reads the outputs against the model's images.
 fn process(model: &Path, out: &Path) -> Value {
     let o = seamstress(&[
         "process",
         model.to_str().unwrap(),
         "--out",
         out.to_str().unwrap(),
+        "--resize",
+        "none",
     ]);
     assert!(
         o.status.success(),

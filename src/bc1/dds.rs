@@ -1,11 +1,15 @@
 //! DDS files holding BC1 data (SPEC §5): 'DDS ' + 124-byte header with
 //! FourCC `DXT1`, or FourCC `DX10` + the 20-byte DX10 header with
 //! DXGI_FORMAT_BC1_UNORM (71) or BC1_UNORM_SRGB (72); then every mip level
-//! in order, each max(1,⌈w/4⌉)·max(1,⌈h/4⌉)·8 bytes.
+//! in order, each max(1,⌈w/4⌉)·max(1,⌈h/4⌉)·8 bytes. BC3 (for textures
+//! whose alpha blends) is the same with FourCC `DXT5` or BC3_UNORM (77) /
+//! BC3_UNORM_SRGB (78), and 16 bytes a block: the alpha block, then the
+//! colour block (always decoded in four-colour mode).
 //!
 //! The reader accepts what the writer produces (and the same layout from
 //! other writers); anything else is an error, never a panic.
 
+use super::alpha::AlphaBlock;
 use super::block::Block;
 use super::block_dims;
 
@@ -26,9 +30,12 @@ const DDSCAPS_TEXTURE: u32 = 0x1000;
 const DDSCAPS_MIPMAP: u32 = 0x40_0000;
 
 const FOURCC_DXT1: &[u8; 4] = b"DXT1";
+const FOURCC_DXT5: &[u8; 4] = b"DXT5";
 const FOURCC_DX10: &[u8; 4] = b"DX10";
 pub const DXGI_FORMAT_BC1_UNORM: u32 = 71;
 pub const DXGI_FORMAT_BC1_UNORM_SRGB: u32 = 72;
+pub const DXGI_FORMAT_BC3_UNORM: u32 = 77;
+pub const DXGI_FORMAT_BC3_UNORM_SRGB: u32 = 78;
 const D3D10_RESOURCE_DIMENSION_TEXTURE2D: u32 = 3;
 
 /// Which header the file carries.
@@ -47,6 +54,8 @@ pub struct MipLevel {
     pub width: u32,
     pub height: u32,
     pub blocks: Vec<Block>,
+    /// BC3's alpha blocks, one per colour block; empty for BC1.
+    pub alpha: Vec<AlphaBlock>,
 }
 
 /// A DDS file read back.
@@ -88,10 +97,16 @@ pub enum DdsError {
     BadMagic,
     #[error("bad DDS header: {0}")]
     BadHeader(&'static str),
-    #[error("pixel format is not BC1 (FourCC {0:?})")]
+    #[error("pixel format is not BC1 or BC3 (FourCC {0:?})")]
     NotBc1([u8; 4]),
-    #[error("DX10 header: DXGI format {0} is not BC1_UNORM or BC1_UNORM_SRGB")]
+    #[error("DX10 header: DXGI format {0} is not BC1 or BC3 (UNORM or UNORM_SRGB)")]
     Dx10Format(u32),
+    #[error("mip level {level} has {got} alpha blocks; {need} expected (every level or none)")]
+    AlphaBlocks {
+        level: usize,
+        got: usize,
+        need: usize,
+    },
     #[error("DX10 header: only single 2D textures are supported")]
     Dx10Layout,
     #[error("pixel data is {got} bytes; {need} expected")]
@@ -138,6 +153,7 @@ pub fn write_dds(levels: &[MipLevel], header: DdsHeaderKind) -> Result<Vec<u8>, 
             max,
         });
     }
+    let bc3 = !first.alpha.is_empty();
     let mut data_len = 0usize;
     for (k, lvl) in levels.iter().enumerate() {
         let (ew, eh) = mip_size(w0, h0, k);
@@ -158,7 +174,15 @@ pub fn write_dds(levels: &[MipLevel], header: DdsHeaderKind) -> Result<Vec<u8>, 
                 need,
             });
         }
-        data_len += need * 8;
+        let alpha_need = if bc3 { need } else { 0 };
+        if lvl.alpha.len() != alpha_need {
+            return Err(DdsError::AlphaBlocks {
+                level: k,
+                got: lvl.alpha.len(),
+                need: alpha_need,
+            });
+        }
+        data_len += need * if bc3 { 16 } else { 8 };
     }
     let mips = levels.len() > 1;
     let dx10 = matches!(header, DdsHeaderKind::Dx10 { .. });
@@ -178,7 +202,7 @@ pub fn write_dds(levels: &[MipLevel], header: DdsHeaderKind) -> Result<Vec<u8>, 
     // 2^17 texels a side; saturate rather than wrap.
     put(
         &mut out,
-        u32::try_from(level_bytes(w0, h0)).unwrap_or(u32::MAX),
+        u32::try_from(level_bytes(w0, h0) * if bc3 { 2 } else { 1 }).unwrap_or(u32::MAX),
     );
     put(&mut out, 0); // depth
     put(&mut out, if mips { levels.len() as u32 } else { 0 });
@@ -187,7 +211,11 @@ pub fn write_dds(levels: &[MipLevel], header: DdsHeaderKind) -> Result<Vec<u8>, 
     }
     put(&mut out, PIXELFORMAT_SIZE);
     put(&mut out, DDPF_FOURCC);
-    out.extend_from_slice(if dx10 { FOURCC_DX10 } else { FOURCC_DXT1 });
+    out.extend_from_slice(match (dx10, bc3) {
+        (true, _) => FOURCC_DX10,
+        (false, false) => FOURCC_DXT1,
+        (false, true) => FOURCC_DXT5,
+    });
     for _ in 0..5 {
         put(&mut out, 0); // bit count and masks
     }
@@ -202,10 +230,11 @@ pub fn write_dds(levels: &[MipLevel], header: DdsHeaderKind) -> Result<Vec<u8>, 
     if let DdsHeaderKind::Dx10 { srgb } = header {
         put(
             &mut out,
-            if srgb {
-                DXGI_FORMAT_BC1_UNORM_SRGB
-            } else {
-                DXGI_FORMAT_BC1_UNORM
+            match (bc3, srgb) {
+                (false, false) => DXGI_FORMAT_BC1_UNORM,
+                (false, true) => DXGI_FORMAT_BC1_UNORM_SRGB,
+                (true, false) => DXGI_FORMAT_BC3_UNORM,
+                (true, true) => DXGI_FORMAT_BC3_UNORM_SRGB,
             },
         );
         put(&mut out, D3D10_RESOURCE_DIMENSION_TEXTURE2D);
@@ -214,7 +243,10 @@ pub fn write_dds(levels: &[MipLevel], header: DdsHeaderKind) -> Result<Vec<u8>, 
         put(&mut out, 0); // misc flags 2: alpha mode unknown
     }
     for lvl in levels {
-        for b in &lvl.blocks {
+        for (k, b) in lvl.blocks.iter().enumerate() {
+            if let Some(a) = lvl.alpha.get(k) {
+                out.extend_from_slice(&a.to_bytes());
+            }
             out.extend_from_slice(&b.to_bytes());
         }
     }
@@ -229,7 +261,8 @@ fn u32_at(bytes: &[u8], off: usize) -> u32 {
     u32::from_le_bytes(w)
 }
 
-/// Reads a BC1 DDS file (legacy `DXT1` or DX10 `BC1_UNORM[_SRGB]`).
+/// Reads a BC1 or BC3 DDS file (legacy `DXT1`/`DXT5` or DX10
+/// `BC1_UNORM[_SRGB]`/`BC3_UNORM[_SRGB]`).
 pub fn read_dds(bytes: &[u8]) -> Result<DdsImage, DdsError> {
     if bytes.len() < 128 {
         return Err(DdsError::Truncated { len: bytes.len() });
@@ -255,24 +288,27 @@ pub fn read_dds(bytes: &[u8]) -> Result<DdsImage, DdsError> {
     }
     let mut fourcc = [0u8; 4];
     fourcc.copy_from_slice(&bytes[84..88]);
-    let (header, data_start) = if &fourcc == FOURCC_DXT1 {
-        (DdsHeaderKind::Legacy, 128)
+    let (header, data_start, bc3) = if &fourcc == FOURCC_DXT1 || &fourcc == FOURCC_DXT5 {
+        (DdsHeaderKind::Legacy, 128, &fourcc == FOURCC_DXT5)
     } else if &fourcc == FOURCC_DX10 {
         if bytes.len() < 128 + DX10_HEADER_LEN {
             return Err(DdsError::Truncated { len: bytes.len() });
         }
-        let srgb = match u32_at(bytes, 128) {
-            DXGI_FORMAT_BC1_UNORM => false,
-            DXGI_FORMAT_BC1_UNORM_SRGB => true,
+        let (bc3, srgb) = match u32_at(bytes, 128) {
+            DXGI_FORMAT_BC1_UNORM => (false, false),
+            DXGI_FORMAT_BC1_UNORM_SRGB => (false, true),
+            DXGI_FORMAT_BC3_UNORM => (true, false),
+            DXGI_FORMAT_BC3_UNORM_SRGB => (true, true),
             f => return Err(DdsError::Dx10Format(f)),
         };
         if u32_at(bytes, 132) != D3D10_RESOURCE_DIMENSION_TEXTURE2D || u32_at(bytes, 140) != 1 {
             return Err(DdsError::Dx10Layout);
         }
-        (DdsHeaderKind::Dx10 { srgb }, 128 + DX10_HEADER_LEN)
+        (DdsHeaderKind::Dx10 { srgb }, 128 + DX10_HEADER_LEN, bc3)
     } else {
         return Err(DdsError::NotBc1(fourcc));
     };
+    let scale = if bc3 { 2 } else { 1 };
     let count = if flags & DDSD_MIPMAPCOUNT != 0 && mip_count > 1 {
         mip_count as usize
     } else {
@@ -290,7 +326,7 @@ pub fn read_dds(bytes: &[u8]) -> Result<DdsImage, DdsError> {
     let data = &bytes[data_start..];
     let need = (0..count).fold(0usize, |acc, k| {
         let (w, h) = mip_size(width, height, k);
-        acc.saturating_add(level_bytes(w, h))
+        acc.saturating_add(level_bytes(w, h).saturating_mul(scale))
     });
     if data.len() != need {
         return Err(DdsError::DataSize {
@@ -302,20 +338,26 @@ pub fn read_dds(bytes: &[u8]) -> Result<DdsImage, DdsError> {
     let mut off = 0;
     for k in 0..count {
         let (w, h) = mip_size(width, height, k);
-        let n = level_bytes(w, h);
-        let blocks = data[off..off + n]
-            .chunks_exact(8)
-            .map(|c| {
-                let mut b = [0u8; 8];
-                b.copy_from_slice(c);
-                Block::from_bytes(b)
-            })
-            .collect();
+        let n = level_bytes(w, h) * scale;
+        let eight = |c: &[u8]| {
+            let mut b = [0u8; 8];
+            b.copy_from_slice(c);
+            b
+        };
+        let mut blocks = Vec::with_capacity(n / 8 / scale);
+        let mut alpha = Vec::new();
+        for c in data[off..off + n].chunks_exact(8 * scale) {
+            if bc3 {
+                alpha.push(AlphaBlock::from_bytes(eight(&c[..8])));
+            }
+            blocks.push(Block::from_bytes(eight(&c[8 * (scale - 1)..])));
+        }
         off += n;
         levels.push(MipLevel {
             width: w,
             height: h,
             blocks,
+            alpha,
         });
     }
     Ok(DdsImage { header, levels })
@@ -368,6 +410,7 @@ mod tests {
                 width: cw as u32,
                 height: ch as u32,
                 blocks,
+                alpha: Vec::new(),
             });
             if !mips || (cw == 1 && ch == 1) {
                 break;
@@ -491,6 +534,7 @@ mod tests {
             width: 0,
             height: 4,
             blocks: vec![],
+            alpha: vec![],
         };
         assert!(write_dds(&[zero], DdsHeaderKind::Legacy).is_err());
     }

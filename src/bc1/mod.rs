@@ -9,11 +9,14 @@
 //! Images are encoded block by block in parallel; each block depends only on
 //! its own texels, so the output is the same whatever the thread count.
 
+pub mod alpha;
+pub mod alpha_seam_aware;
 mod block;
 pub mod dds;
 pub mod decoder;
 mod encode;
 mod fast;
+pub mod punch;
 mod retarget;
 pub mod seam_aware;
 

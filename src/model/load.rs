@@ -19,7 +19,7 @@ use gltf::json::mesh::{Mode, Semantic};
 use gltf::json::validation::Checked;
 
 use super::image::{ImageHeader, Texture, TextureError};
-use super::{Model, Skipped, TextureBinding, UvTriangle, Wrap};
+use super::{AlphaUse, Model, Skipped, TextureBinding, UvTriangle, Wrap};
 
 /// What to load and how much to trust.
 #[derive(Clone, Debug)]
@@ -308,6 +308,10 @@ pub struct PlannedTexture {
     pub wrap_s: Wrap,
     pub wrap_t: Wrap,
     pub srgb: bool,
+    /// A KHR_texture_transform that samples it rotates the UVs.
+    pub rotated: bool,
+    /// How its materials use its alpha channel.
+    pub alpha: AlphaUse,
     pub triangles: Vec<UvTriangle>,
     bytes: Vec<u8>,
 }
@@ -345,6 +349,8 @@ impl Plan {
                 wrap_s: t.wrap_s,
                 wrap_t: t.wrap_t,
                 srgb: t.srgb,
+                rotated: t.rotated,
+                alpha: t.alpha,
                 triangles: t.triangles,
             });
         }
@@ -946,6 +952,7 @@ struct TexUse {
     transform: Option<[f64; 6]>,
     wrap: (Wrap, Wrap),
     srgb: bool,
+    alpha: AlphaUse,
 }
 
 struct MaterialUses {
@@ -967,6 +974,8 @@ struct UseSite {
 struct BindingBuilder {
     wrap: Option<(Wrap, Wrap)>,
     srgb: bool,
+    rotated: bool,
+    alpha: AlphaUse,
     triangles: Vec<UvTriangle>,
 }
 
@@ -1243,6 +1252,7 @@ impl<'a> Loader<'a> {
             transform,
             wrap,
             srgb,
+            alpha: AlphaUse::Opaque,
         })
     }
 
@@ -1280,7 +1290,20 @@ impl<'a> Loader<'a> {
             let pbr = &mat.pbr_metallic_roughness;
             let mut list = Vec::new();
             if let Some(info) = &pbr.base_color_texture {
-                list.push(self.texture_use(info, "baseColorTexture", true, m)?);
+                let mut u = self.texture_use(info, "baseColorTexture", true, m)?;
+                u.alpha = match mat.alpha_mode {
+                    Checked::Valid(json::material::AlphaMode::Opaque) => AlphaUse::Opaque,
+                    Checked::Valid(json::material::AlphaMode::Mask) => AlphaUse::Mask {
+                        cutoff: mat.alpha_cutoff.map_or(0.5, |c| c.0),
+                    },
+                    Checked::Valid(json::material::AlphaMode::Blend) => AlphaUse::Blend,
+                    Checked::Invalid => {
+                        return Err(invalid(format!(
+                            "material {m}: alphaMode is not OPAQUE, MASK or BLEND"
+                        )))
+                    }
+                };
+                list.push(u);
             }
             if let Some(info) = &mat.emissive_texture {
                 list.push(self.texture_use(info, "emissiveTexture", true, m)?);
@@ -1432,6 +1455,8 @@ impl<'a> Loader<'a> {
                         Some(_) => {}
                     }
                     b.srgb |= u.srgb;
+                    b.alpha = b.alpha.merge(u.alpha);
+                    b.rotated |= u.transform.is_some_and(|t| t[1] != 0.0 || t[3] != 0.0);
                     total_triangles += corners.len();
                     if total_triangles > opts.max_triangles {
                         return Err(invalid(format!(
@@ -1482,6 +1507,8 @@ impl<'a> Loader<'a> {
                 wrap_s,
                 wrap_t,
                 srgb: b.srgb,
+                rotated: b.rotated,
+                alpha: b.alpha,
                 triangles: b.triangles,
                 bytes,
             });

@@ -48,6 +48,35 @@ impl Wrap {
     }
 }
 
+/// How the materials that sample a texture as base colour use its alpha
+/// channel (glTF `alphaMode`, `alphaCutoff`).
+#[derive(Clone, Copy, Debug, PartialEq, Default, serde::Serialize)]
+#[serde(tag = "mode", rename_all = "snake_case")]
+pub enum AlphaUse {
+    /// Alpha is ignored (`OPAQUE`, or the texture is not a base colour).
+    #[default]
+    Opaque,
+    /// Texels at or above `cutoff` are drawn, the rest discarded.
+    Mask { cutoff: f32 },
+    /// Alpha blends: every value matters. Also where materials mask the
+    /// texture at different cutoffs, which one bit per texel cannot serve.
+    Blend,
+}
+
+impl AlphaUse {
+    /// The use that serves both: blending over masking over opaque.
+    pub fn merge(self, other: AlphaUse) -> AlphaUse {
+        match (self, other) {
+            (AlphaUse::Blend, _) | (_, AlphaUse::Blend) => AlphaUse::Blend,
+            (AlphaUse::Mask { cutoff: a }, AlphaUse::Mask { cutoff: b }) if a != b => {
+                AlphaUse::Blend
+            }
+            (m @ AlphaUse::Mask { .. }, _) | (_, m @ AlphaUse::Mask { .. }) => m,
+            _ => AlphaUse::Opaque,
+        }
+    }
+}
+
 /// One triangle that samples a texture.
 ///
 /// `group` scopes welding: vertices are welded only between triangles of the
@@ -74,6 +103,11 @@ pub struct TextureBinding {
     pub wrap_t: Wrap,
     /// True when a material samples it as base colour or emissive (sRGB data).
     pub srgb: bool,
+    /// A KHR_texture_transform that samples it rotates the UVs (so the
+    /// texture cannot be padded with a per-axis UV scale).
+    pub rotated: bool,
+    /// How its materials use its alpha channel.
+    pub alpha: AlphaUse,
     pub triangles: Vec<UvTriangle>,
 }
 

@@ -48,7 +48,11 @@ pub enum RewriteError {
     NoSuchImage(usize),
     #[error("DDS file name {0:?} cannot be a relative URI")]
     BadName(String),
+    #[error("image {0} was padded, but a KHR_texture_transform sampling it rotates the UVs")]
+    RotatedTransform(usize),
 }
+
+pub const TRANSFORM_EXTENSION: &str = "KHR_texture_transform";
 
 /// A GLB split into its JSON and BIN chunks.
 pub struct Glb<'a> {
@@ -229,6 +233,8 @@ pub struct Replacement<'a> {
     pub dds: &'a [u8],
     pub fallback_name: &'a str,
     pub fallback: &'a [u8],
+    /// The image was padded: what its UVs are multiplied by, per axis.
+    pub uv_scale: Option<[f64; 2]>,
 }
 
 /// The model (`.glb` or `.gltf` bytes) rewritten to use the DDS files, in
@@ -276,6 +282,7 @@ fn refer(root: &mut Value, images: &BTreeMap<usize, Replacement<'_>>) -> Result<
         let uri = relative_uri(r.fallback_name)?;
         set_image(root, i, json!({ "uri": uri, "mimeType": PNG_MIME }))?;
     }
+    scale_padded(root, images)?;
     add_dds_sources(root, &dds).map(drop)
 }
 
@@ -305,11 +312,111 @@ fn embed(
         list.push(json!({ "bufferView": dds, "mimeType": DDS_MIME }));
     }
     root["buffers"][0]["byteLength"] = json!(bin.len());
+    scale_padded(root, images)?;
     let obj = root
         .as_object_mut()
         .ok_or_else(|| RewriteError::Json("the root is not an object".into()))?;
     reference_dds_images(obj, &dds_image)?;
     Ok(true)
+}
+
+/// Scales the UVs of every texture info that samples a padded image, so
+/// that each UV samples the texel it sampled before the padding.
+fn scale_padded(
+    root: &mut Value,
+    images: &BTreeMap<usize, Replacement<'_>>,
+) -> Result<(), RewriteError> {
+    let mut scaled = false;
+    for (&image, r) in images {
+        let Some(scale) = r.uv_scale else {
+            continue;
+        };
+        let textures: Vec<u64> = root["textures"]
+            .as_array()
+            .map(Vec::as_slice)
+            .unwrap_or(&[])
+            .iter()
+            .enumerate()
+            .filter(|(_, t)| t["source"].as_u64() == Some(image as u64))
+            .map(|(k, _)| k as u64)
+            .collect();
+        if let Some(materials) = root.get_mut("materials") {
+            scale_texture_infos(materials, &textures, scale, image)?;
+        }
+        scaled = true;
+    }
+    if scaled {
+        let used = array_mut(root, "extensionsUsed")?;
+        if !used.iter().any(|e| e.as_str() == Some(TRANSFORM_EXTENSION)) {
+            used.push(Value::String(TRANSFORM_EXTENSION.into()));
+        }
+    }
+    Ok(())
+}
+
+/// Every texture info under `v` (an object under a key ending in
+/// `Texture`, the glTF convention, extensions included) that names one of
+/// `textures` gets `scale` composed after its KHR_texture_transform:
+/// P·T(o)·S(k) = T(P·o)·S(P·k) when the transform does not rotate.
+fn scale_texture_infos(
+    v: &mut Value,
+    textures: &[u64],
+    scale: [f64; 2],
+    image: usize,
+) -> Result<(), RewriteError> {
+    match v {
+        Value::Array(items) => {
+            for item in items {
+                scale_texture_infos(item, textures, scale, image)?;
+            }
+        }
+        Value::Object(fields) => {
+            for (key, value) in fields.iter_mut() {
+                let names = value["index"]
+                    .as_u64()
+                    .is_some_and(|i| textures.contains(&i));
+                if key.ends_with("Texture") && names {
+                    compose_scale(value, scale, image)?;
+                } else {
+                    scale_texture_infos(value, textures, scale, image)?;
+                }
+            }
+        }
+        _ => {}
+    }
+    Ok(())
+}
+
+fn compose_scale(info: &mut Value, p: [f64; 2], image: usize) -> Result<(), RewriteError> {
+    let Some(info) = info.as_object_mut() else {
+        return Ok(());
+    };
+    let extensions = info
+        .entry("extensions")
+        .or_insert_with(|| Value::Object(Map::new()))
+        .as_object_mut()
+        .ok_or_else(|| {
+            RewriteError::Json("a texture info's \"extensions\" is not an object".into())
+        })?;
+    let t = extensions
+        .entry(TRANSFORM_EXTENSION)
+        .or_insert_with(|| Value::Object(Map::new()))
+        .as_object_mut()
+        .ok_or_else(|| RewriteError::Json("KHR_texture_transform is not an object".into()))?;
+    let pair = |v: Option<&Value>, default: f64| -> [f64; 2] {
+        let at = |k: usize| v.and_then(|v| v[k].as_f64()).unwrap_or(default);
+        [at(0), at(1)]
+    };
+    let rotation = t.get("rotation").and_then(Value::as_f64).unwrap_or(0.0);
+    if rotation != 0.0 && p[0] != p[1] {
+        return Err(RewriteError::RotatedTransform(image));
+    }
+    let (o, k) = (pair(t.get("offset"), 0.0), pair(t.get("scale"), 1.0));
+    if o != [0.0, 0.0] {
+        t.insert("offset".into(), json!([o[0] * p[0], o[1] * p[1]]));
+    }
+    t.insert("scale".into(), json!([k[0] * p[0], k[1] * p[1]]));
+    Ok(())
 }
 
 /// `root[key]` as an array, created empty when missing.
@@ -424,6 +531,7 @@ mod tests {
                 dds: b"DDS data",
                 fallback_name: "b.erased.png",
                 fallback: b"png",
+                uv_scale: None,
             },
         )]);
         let out = rewrite_model(&glb, &images).unwrap();
@@ -459,6 +567,7 @@ mod tests {
                 dds: b"",
                 fallback_name: "a b.erased.png",
                 fallback: b"",
+                uv_scale: None,
             },
         )]);
         let out = rewrite_model(&main, &images).unwrap();

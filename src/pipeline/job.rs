@@ -174,6 +174,7 @@ fn rewritten_model(
                     dds,
                     fallback_name: &t.files.erased,
                     fallback,
+                    uv_scale: t.resize.and_then(|r| r.uv_scale),
                 },
             );
         }

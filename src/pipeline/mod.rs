@@ -8,9 +8,12 @@
 //! named byte buffers, which the CLI writes into a folder and the service
 //! into its file store, so both serve identical bytes.
 
+pub mod alpha;
 pub mod job;
 mod progress;
 
+pub use alpha::{AlphaFormat, AlphaOption, AlphaReport};
+use alpha::{AlphaMetrics, AlphaPlan};
 pub use job::{admit, run_job, JobError, JobInput, JobOutput, JobSettings, JobTimings};
 pub use progress::{NoSink, Progress, Sink, Stop};
 
@@ -20,20 +23,25 @@ use std::time::Instant;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use crate::bc1::alpha::{decode_alpha_image, encode_alpha_image, AlphaBlock};
+use crate::bc1::alpha_seam_aware::{optimise_alpha, AlphaProblem};
 use crate::bc1::dds::{write_dds, DdsHeaderKind, MipLevel};
+use crate::bc1::punch::punch_through;
 use crate::bc1::seam_aware::{optimise, Problem, SeamAwareOptions};
 use crate::bc1::Decoder;
 pub use crate::bc1::Target;
 use crate::bc1::{self, Block, Level};
 use crate::mips;
-use crate::model::{find_seams, Model, SeamSet, Skipped, Texture, TextureBinding};
+use crate::model::{find_seams, AlphaUse, Model, SeamSet, Skipped, Texture, TextureBinding};
 use crate::picture::{seams_png, SeamPicture};
+pub use crate::resize::{Resize, SizeChange};
 use crate::seam::charts::{ChartFidelity, Charts, HARM_PSNR_DB};
 use crate::seam::classify::{classify, ClassifyOptions, SeamVerdicts};
 use crate::seam::erase::{erase, EraseError, EraseOptions, EraseStats, Mode};
 use crate::seam::masking::{mask, MaskingOptions};
 use crate::seam::metric::seam_points_texel_length;
 use crate::seam::padding::pad_left_seams;
+use crate::seam::quadrature::QuadPoint;
 use crate::seam::system::SolveError;
 use crate::seam::{colour_channels, psnr, SeamMetric, TexelClasses, TexelGrid};
 
@@ -83,6 +91,10 @@ pub struct ProcessOptions {
     pub pictures: bool,
     /// The GPU decoders the seam-aware encoding keeps the seams closed under.
     pub decoder: Target,
+    /// What happens to a texture whose sides are not multiples of 4.
+    pub resize: Resize,
+    /// What the DDS keeps of alpha.
+    pub alpha: AlphaOption,
 }
 
 impl Default for ProcessOptions {
@@ -100,6 +112,8 @@ impl Default for ProcessOptions {
             erase_all: false,
             pictures: false,
             decoder: Target::Robust,
+            resize: Resize::Mul4,
+            alpha: AlphaOption::Auto,
         }
     }
 }
@@ -202,8 +216,15 @@ pub struct Files {
 pub struct TextureReport {
     pub image: usize,
     pub name: String,
+    /// The size processed and written (after `resize`).
     pub width: usize,
     pub height: usize,
+    /// How the texture was brought to that size, when it was.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub resize: Option<SizeChange>,
+    /// What became of the alpha channel, when the texture has one in use.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub alpha: Option<AlphaReport>,
     pub seam_edges: usize,
     pub seams: SeamSummary,
     pub input: Metrics,
@@ -274,9 +295,13 @@ pub fn run_reporting(
             fraction: 0.1 + 0.8 * k as f64 / total as f64,
         })
         .map_err(PipelineError::Stopped)?;
-        let (report, mut out) = process_texture(binding, load_ms, opts)?;
+        let fitted = crate::resize::fit(binding, opts.resize);
+        let binding = fitted.as_ref().map_or(binding, |f| &f.0);
+        let (mut report, mut out) = process_texture(binding, load_ms, opts)?;
+        report.resize = fitted.map(|f| f.1);
         files.append(&mut out);
         warnings.extend(harm_warning(&report, opts));
+        warnings.extend(alpha_warning(&report));
         textures.push(report);
     }
     let report = Report {
@@ -314,6 +339,7 @@ fn erase_level(
     b: &TextureBinding,
     tex: &Texture,
     opts: &ProcessOptions,
+    erase_alpha: bool,
 ) -> Result<ErasedLevel, PipelineError> {
     let grid = TexelGrid {
         width: tex.width,
@@ -353,6 +379,9 @@ fn erase_level(
             tracing::debug!(spared, "seams left to spare their charts");
             solved = solve(b, &grid, tex, &seams, &verdicts.closed, &charts, opts)?;
         }
+    }
+    if !erase_alpha {
+        alpha::restore(&mut solved.data, tex);
     }
     let like = |data| Texture {
         width: tex.width,
@@ -473,6 +502,9 @@ fn rgb(t: &Texture) -> Vec<f32> {
 struct EncodedLevel {
     regular: Vec<Block>,
     shipped: Vec<Block>,
+    /// BC3's alpha blocks (empty for BC1).
+    alpha_regular: Vec<AlphaBlock>,
+    alpha_shipped: Vec<AlphaBlock>,
     encode_ms: u64,
     seam_aware_ms: u64,
 }
@@ -481,6 +513,7 @@ fn encode_level(
     b: &TextureBinding,
     level: &ErasedLevel,
     opts: &ProcessOptions,
+    plan: Option<&AlphaPlan>,
 ) -> Result<EncodedLevel, PipelineError> {
     let encode_err = |message: String| PipelineError::Encode {
         name: b.name.clone(),
@@ -488,26 +521,50 @@ fn encode_level(
     };
     let (w, h) = (level.grid.width, level.grid.height);
     let target = rgb(&level.stored);
+    let values = plan.and_then(|_| alpha::channel(&level.stored));
+    let format = plan.map(|p| p.format);
+    let clear = match (plan, &values) {
+        (Some(p), Some(a)) if p.format == AlphaFormat::Bc1a => {
+            Some(alpha::transparent(a, p.cutoff.unwrap_or(0.5)))
+        }
+        _ => None,
+    };
     let t = Instant::now();
-    let regular = bc1::encode_image_for(&target, w, h, 3, opts.bc1_level, opts.decoder)
+    let mut regular = bc1::encode_image_for(&target, w, h, 3, opts.bc1_level, opts.decoder)
         .map_err(|e| encode_err(e.to_string()))?;
+    if let Some(clear) = &clear {
+        punch_through(&mut regular, &target, clear, w, h, opts.decoder);
+    }
+    let alpha_regular = match (format, &values) {
+        (Some(AlphaFormat::Bc3), Some(a)) => encode_alpha_image(a, w, h, opts.decoder),
+        _ => Vec::new(),
+    };
     let encode_ms = t.elapsed().as_millis() as u64;
     let t = Instant::now();
     let mut shipped = regular.clone();
+    let mut alpha_shipped = alpha_regular.clone();
     if opts.seam_aware && !level.closed.seams.is_empty() {
         let points = seam_points_texel_length(&level.grid, &level.closed);
+        let sa_opts = SeamAwareOptions {
+            alpha: opts.seam_weight,
+            target: opts.decoder,
+            ..SeamAwareOptions::default()
+        };
+        let kept;
+        let colour_points = match &clear {
+            Some(clear) => {
+                kept = away_from_punched_blocks(&points, clear, w, h);
+                &kept
+            }
+            None => &points,
+        };
         let problem = Problem {
             width: w,
             height: h,
             target: &target,
             channels: 3,
             inside: &level.classes.inside,
-            points: &points,
-        };
-        let sa_opts = SeamAwareOptions {
-            alpha: opts.seam_weight,
-            target: opts.decoder,
-            ..SeamAwareOptions::default()
+            points: colour_points,
         };
         let stats =
             optimise(&problem, &mut shipped, &sa_opts).map_err(|source| PipelineError::Solve {
@@ -521,13 +578,57 @@ fn encode_level(
             energy_final = stats.energy_final,
             "seam-aware encoding"
         );
+        if let (Some(a), Some(true)) = (&values, plan.map(|p| p.erase)) {
+            let problem = AlphaProblem {
+                width: w,
+                height: h,
+                target: a,
+                inside: &level.classes.inside,
+                points: &points,
+            };
+            let stats = optimise_alpha(&problem, &mut alpha_shipped, &sa_opts);
+            tracing::debug!(
+                blocks = stats.blocks,
+                sweeps = stats.sweeps,
+                energy_regular = stats.energy_regular,
+                energy_final = stats.energy_final,
+                "seam-aware alpha"
+            );
+        }
     }
     Ok(EncodedLevel {
         regular,
         shipped,
+        alpha_regular,
+        alpha_shipped,
         encode_ms,
         seam_aware_ms: t.elapsed().as_millis() as u64,
     })
+}
+
+/// The seam points none of whose taps fall in a block holding a
+/// transparent texel. Those blocks are in three-colour mode, which the
+/// seam-aware search does not model: they keep the regular encoding.
+fn away_from_punched_blocks(
+    points: &[QuadPoint],
+    clear: &[bool],
+    w: usize,
+    h: usize,
+) -> Vec<QuadPoint> {
+    let bw = w.div_ceil(4);
+    let mut punched = vec![false; bw * h.div_ceil(4)];
+    for (t, _) in clear.iter().enumerate().filter(|(_, c)| **c) {
+        punched[(t / w / 4) * bw + (t % w) / 4] = true;
+    }
+    points
+        .iter()
+        .filter(|q| {
+            q.taps
+                .iter()
+                .all(|&(t, _)| !punched[(t as usize / w / 4) * bw + (t as usize % w) / 4])
+        })
+        .cloned()
+        .collect()
 }
 
 /// The metric over every seam and over the closed ones, and the fidelity
@@ -573,6 +674,28 @@ impl Measure<'_> {
             );
         }
         Ok(out)
+    }
+
+    /// Alpha figures of `alpha` (one value per texel) against `input`'s
+    /// (and, for an encoding, against the `erased` alpha it encoded).
+    fn alpha(
+        &self,
+        plan: &AlphaPlan,
+        alpha: &[f32],
+        input: &[f32],
+        erased: Option<&[f32]>,
+    ) -> AlphaMetrics {
+        let mask = match (plan.material, plan.cutoff) {
+            (AlphaUse::Mask { .. }, Some(c)) => Some(c),
+            _ => None,
+        };
+        AlphaMetrics {
+            seam_rms: self.all.seam_rms(alpha, 1, 1),
+            seam_rms_closed: self.closed.seam_rms(alpha, 1, 1),
+            psnr: psnr(alpha, input, 1, 1, self.inside),
+            encoding_psnr: erased.and_then(|e| psnr(alpha, e, 1, 1, self.inside)),
+            opacity_changes: mask.map(|c| alpha::opacity_changes(input, alpha, c, self.inside)),
+        }
     }
 
     fn against(&self, data: &[f32], channels: usize, reference: &[f32]) -> Metrics {
@@ -647,6 +770,19 @@ fn harm_warning(t: &TextureReport, opts: &ProcessOptions) -> Option<String> {
     ))
 }
 
+/// The warning for alpha in use that the DDS does not keep (`--alpha drop`).
+fn alpha_warning(t: &TextureReport) -> Option<String> {
+    let a = t
+        .alpha
+        .as_ref()
+        .filter(|a| a.format == AlphaFormat::Dropped)?;
+    tracing::warn!(texture = %t.name, material = ?a.material, "alpha dropped");
+    Some(format!(
+        "texture {}: its alpha is in use but the DDS is opaque BC1 (--alpha drop)",
+        t.name
+    ))
+}
+
 fn process_texture(
     b: &TextureBinding,
     load_ms: u64,
@@ -660,7 +796,8 @@ fn process_texture(
         message,
     };
 
-    let level0 = erase_level(b, tex, opts)?;
+    let plan = alpha::plan(b, opts.alpha);
+    let level0 = erase_level(b, tex, opts, plan.is_some_and(|p| p.erase))?;
     tracing::info!(
         seam_edges = level0.seams.seams.len(),
         closed = level0.verdicts.closed_count(),
@@ -692,6 +829,8 @@ fn process_texture(
         name: b.name.clone(),
         width: tex.width,
         height: tex.height,
+        resize: None,
+        alpha: None,
         seam_edges: level0.seams.seams.len(),
         seams: seam_summary(&level0, opts),
         input: measure.input(&tex.data, tex.channels),
@@ -716,12 +855,34 @@ fn process_texture(
 
     let input_rgb = rgb(tex);
     let erased_rgb = rgb(&level0.stored);
+    let alphas =
+        plan.and_then(|p| Some((p, alpha::channel(tex)?, alpha::channel(&level0.stored)?)));
+    report.alpha = alphas.as_ref().map(|(p, input, erased)| AlphaReport {
+        format: p.format,
+        material: p.material,
+        erased_seams: p.erase,
+        input: measure.alpha(p, input, input, None),
+        erased: measure.alpha(p, erased, input, None),
+        regular: None,
+        dds: None,
+    });
+    // Under a transparent texel of a one-bit-alpha DDS no colour is shown:
+    // the colour figures take the erased texture's there.
+    let clear = alphas.as_ref().and_then(|(p, _, erased)| {
+        (p.format == AlphaFormat::Bc1a).then(|| alpha::transparent(erased, p.cutoff.unwrap_or(0.5)))
+    });
     let mut decoded = None;
     if opts.format == Format::Dds {
-        let enc = encode_level(b, &level0, opts)?;
+        let enc = encode_level(b, &level0, opts, plan.as_ref())?;
         let decode = |blocks: &[Block], d: Decoder| {
-            bc1::decode_image_with(blocks, tex.width, tex.height, d)
-                .map_err(|e| encode_err(e.to_string()))
+            let mut rgb = bc1::decode_image_with(blocks, tex.width, tex.height, d)
+                .map_err(|e| encode_err(e.to_string()))?;
+            if let Some(clear) = &clear {
+                for (t, _) in clear.iter().enumerate().filter(|(_, c)| **c) {
+                    rgb[t * 3..t * 3 + 3].copy_from_slice(&erased_rgb[t * 3..t * 3 + 3]);
+                }
+            }
+            Ok(rgb)
         };
         let regular = decode(&enc.regular, Decoder::Ideal)?;
         let shipped = decode(&enc.shipped, Decoder::Ideal)?;
@@ -736,6 +897,17 @@ fn process_texture(
             report.bc1_seam_aware = Some(sa);
             report.bc1_target = Some(opts.decoder);
         }
+        if let (Some(r), Some((p, input, erased))) = (report.alpha.as_mut(), alphas.as_ref()) {
+            let figures = |regular| {
+                dds_alpha(&enc, p, tex, regular).map(|per| {
+                    per.into_iter()
+                        .map(|(d, a)| (d.name(), measure.alpha(p, &a, input, Some(erased))))
+                        .collect()
+                })
+            };
+            r.regular = figures(true);
+            r.dds = figures(false);
+        }
         report.timings_ms.encode = enc.encode_ms;
         report.timings_ms.seam_aware = enc.seam_aware_ms;
         tracing::info!(
@@ -746,7 +918,7 @@ fn process_texture(
         let dds_name = format!("{}.dds", b.name);
         files.push(OutputFile {
             name: dds_name.clone(),
-            bytes: write_levels(b, &level0, enc.shipped, opts)?,
+            bytes: write_levels(b, &level0, enc, opts, plan.as_ref())?,
         });
         report.files.dds = Some(dds_name);
         decoded = Some((regular, shipped));
@@ -774,31 +946,59 @@ fn process_texture(
     Ok((report, files))
 }
 
+/// The DDS's level-0 alpha under each decoder, when it holds alpha.
+/// `regular`: of the regular encoding rather than the shipped one.
+fn dds_alpha(
+    enc: &EncodedLevel,
+    plan: &AlphaPlan,
+    tex: &Texture,
+    regular: bool,
+) -> Option<Vec<(Decoder, Vec<f32>)>> {
+    let (w, h) = (tex.width, tex.height);
+    let (colour, alpha) = if regular {
+        (&enc.regular, &enc.alpha_regular)
+    } else {
+        (&enc.shipped, &enc.alpha_shipped)
+    };
+    let per = |d: Decoder| match plan.format {
+        AlphaFormat::Bc3 => Some(decode_alpha_image(alpha, w, h, d)),
+        AlphaFormat::Bc1a => Some(bc1::punch::punch_alpha(colour, w, h)),
+        AlphaFormat::Dropped => None,
+    };
+    Decoder::ALL
+        .into_iter()
+        .map(|d| Some((d, per(d)?)))
+        .collect()
+}
+
 /// The DDS: level 0 as encoded, then (with `mips`) every smaller level
 /// filtered from the one above, erased and encoded on its own.
 fn write_levels(
     b: &TextureBinding,
     level0: &ErasedLevel,
-    blocks0: Vec<Block>,
+    enc0: EncodedLevel,
     opts: &ProcessOptions,
+    plan: Option<&AlphaPlan>,
 ) -> Result<Vec<u8>, PipelineError> {
     let tex = &b.texture;
     let mut levels = vec![MipLevel {
         width: tex.width as u32,
         height: tex.height as u32,
-        blocks: blocks0,
+        blocks: enc0.shipped,
+        alpha: enc0.alpha_shipped,
     }];
     if opts.mips {
         let mut above = level0.float.clone();
         for k in 1..mips::chain_len(tex.width, tex.height) {
             let filtered = mips::downsample(&above, b.wrap_s, b.wrap_t);
-            let level = erase_level(b, &filtered, opts)?;
-            let enc = encode_level(b, &level, opts)?;
+            let level = erase_level(b, &filtered, opts, plan.is_some_and(|p| p.erase))?;
+            let enc = encode_level(b, &level, opts, plan)?;
             tracing::debug!(level = k, width = level.grid.width, "mip level encoded");
             levels.push(MipLevel {
                 width: level.grid.width as u32,
                 height: level.grid.height as u32,
                 blocks: enc.shipped,
+                alpha: enc.alpha_shipped,
             });
             above = level.float;
         }

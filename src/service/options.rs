@@ -4,7 +4,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::bc1::Level;
-use crate::pipeline::{Format, Method, ProcessOptions, Target};
+use crate::pipeline::{AlphaOption, Format, Method, ProcessOptions, Resize, Target};
 use crate::seam::erase::Mode;
 
 /// Options as a client sends them (JSON part or query parameters); absent
@@ -38,6 +38,9 @@ pub struct JobOptions {
     pub erase_all: Option<bool>,
     #[serde(default, deserialize_with = "present")]
     pub decoder: Option<Target>,
+    #[serde(default, deserialize_with = "present")]
+    pub resize: Option<Resize>,
+    pub alpha: Option<AlphaOption>,
 }
 
 /// A field that, when present, must hold a value (not `null`).
@@ -70,6 +73,20 @@ pub struct ResolvedOptions {
     /// Absent in jobs stored before decoders were targeted: the default.
     #[serde(default)]
     pub decoder: Target,
+    /// Absent in jobs stored before sizes were fitted: left alone, as then.
+    #[serde(default = "resize_before_fitting")]
+    pub resize: Resize,
+    /// Absent in jobs stored before alpha was kept: dropped, as then.
+    #[serde(default = "alpha_before_keeping")]
+    pub alpha: AlphaOption,
+}
+
+fn alpha_before_keeping() -> AlphaOption {
+    AlphaOption::Drop
+}
+
+fn resize_before_fitting() -> Resize {
+    Resize::None
 }
 
 fn default_seam_tolerance() -> f64 {
@@ -90,6 +107,8 @@ pub const QUERY_OPTIONS: &[&str] = &[
     "seam_tolerance",
     "erase_all",
     "decoder",
+    "resize",
+    "alpha",
 ];
 
 impl JobOptions {
@@ -108,6 +127,8 @@ impl JobOptions {
             seam_tolerance: over.seam_tolerance.or(self.seam_tolerance),
             erase_all: over.erase_all.or(self.erase_all),
             decoder: over.decoder.or(self.decoder),
+            resize: over.resize.or(self.resize),
+            alpha: over.alpha.or(self.alpha),
         }
     }
 
@@ -135,6 +156,8 @@ impl JobOptions {
             "extra_maps" => self.extra_maps = Some(boolean(key, value)?),
             "erase_all" => self.erase_all = Some(boolean(key, value)?),
             "decoder" => self.decoder = Some(word(key, value)?),
+            "resize" => self.resize = Some(word(key, value)?),
+            "alpha" => self.alpha = Some(word(key, value)?),
             "seam_tolerance" => {
                 self.seam_tolerance = Some(
                     value
@@ -182,6 +205,8 @@ impl JobOptions {
             seam_tolerance,
             erase_all: self.erase_all.unwrap_or(d.erase_all),
             decoder: self.decoder.unwrap_or(d.decoder),
+            resize: self.resize.unwrap_or(d.resize),
+            alpha: self.alpha.unwrap_or(d.alpha),
         })
     }
 }
@@ -203,6 +228,8 @@ pub fn process_options(o: &ResolvedOptions) -> ProcessOptions {
         // The service always draws the seams picture.
         pictures: true,
         decoder: o.decoder,
+        resize: o.resize,
+        alpha: o.alpha,
     }
 }
 

@@ -22,6 +22,13 @@ pub const PYTHON: Tool = Tool {
     install: "python3 -m pip install numpy pillow pygltflib",
 };
 
+/// texture2ddecoder, a second BC1/BC3 decoder besides Pillow's.
+pub const TEXTURE2DDECODER: Tool = Tool {
+    name: "python3 with texture2ddecoder and pillow",
+    probe: &["python3", "-c", "import texture2ddecoder, PIL"],
+    install: "python3 -m pip install texture2ddecoder pillow",
+};
+
 /// The OpenAPI contract tester.
 pub const SCHEMATHESIS: Tool = Tool {
     name: "schemathesis",
