@@ -540,6 +540,50 @@ mod tests {
     }
 
     #[test]
+    fn bc3_round_trips_under_both_headers() {
+        use crate::bc1::alpha::AlphaBlock;
+        let mut levels = chain(20, 12, true);
+        for (k, l) in levels.iter_mut().enumerate() {
+            l.alpha = (0..l.blocks.len())
+                .map(|i| {
+                    let idx: [u8; 16] = std::array::from_fn(|t| ((t + i + k) % 8) as u8);
+                    AlphaBlock::with_indices((i * 7) as u8, (k * 31) as u8, &idx)
+                })
+                .collect();
+        }
+        for (header, fourcc, format) in [
+            (DdsHeaderKind::Legacy, *b"DXT5", None),
+            (
+                DdsHeaderKind::Dx10 { srgb: true },
+                *b"DX10",
+                Some(DXGI_FORMAT_BC3_UNORM_SRGB),
+            ),
+            (
+                DdsHeaderKind::Dx10 { srgb: false },
+                *b"DX10",
+                Some(DXGI_FORMAT_BC3_UNORM),
+            ),
+        ] {
+            let bytes = write_dds(&levels, header).unwrap();
+            assert_eq!(bytes[84..88], fourcc);
+            if let Some(f) = format {
+                assert_eq!(u32_at(&bytes, 128), f);
+            }
+            // Linear size: level 0's bytes, 16 a block.
+            assert_eq!(u32_at(&bytes, 20), 5 * 3 * 16);
+            let back = read_dds(&bytes).unwrap();
+            assert_eq!(back.header, header);
+            assert_eq!(back.levels, levels);
+        }
+        // Alpha on some levels only is refused.
+        levels[1].alpha.clear();
+        assert!(matches!(
+            write_dds(&levels, DdsHeaderKind::Legacy),
+            Err(DdsError::AlphaBlocks { level: 1, .. })
+        ));
+    }
+
+    #[test]
     fn reader_never_panics_on_damage() {
         let bytes = write_dds(&chain(20, 12, true), DdsHeaderKind::Dx10 { srgb: false }).unwrap();
         for cut in 0..bytes.len() {
@@ -562,9 +606,9 @@ mod tests {
         let mut wrong = bytes.clone();
         wrong[128..132].copy_from_slice(&98u32.to_le_bytes());
         assert_eq!(read_dds(&wrong), Err(DdsError::Dx10Format(98)));
-        let mut dxt5 = bytes;
-        dxt5[84..88].copy_from_slice(b"DXT5");
-        assert_eq!(read_dds(&dxt5), Err(DdsError::NotBc1(*b"DXT5")));
+        let mut dxt3 = bytes;
+        dxt3[84..88].copy_from_slice(b"DXT3");
+        assert_eq!(read_dds(&dxt3), Err(DdsError::NotBc1(*b"DXT3")));
         assert_eq!(read_dds(b"not a dds"), Err(DdsError::Truncated { len: 9 }));
     }
 }
