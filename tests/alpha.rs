@@ -165,6 +165,10 @@ fn a_blend_gets_bc3_with_its_alpha_seams_closed() {
         assert!(f(&a["dds"][d]["encoding_psnr"]) >= 40.0, "{d}: {a}");
     }
     colour_seams_closed(t);
+    if common::GLTF_VALIDATOR.available() {
+        let verdict = common::gltf_validate(&out.join("duck_blend.gltf"));
+        assert_eq!(verdict["errors"], 0, "{verdict}");
+    }
 
     let dds = read_dds(&std::fs::read(out.join("duck_alpha.dds")).unwrap()).unwrap();
     let l = &dds.levels[0];

@@ -288,23 +288,6 @@ fn repeated_runs_write_identical_files() {
     );
 }
 
-/// The Khronos validator's verdict on a model written by `process`.
-fn gltf_validate(model: &Path) -> Value {
-    let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/tools/gltf_validate.js");
-    let o = Command::new("node")
-        .arg(script)
-        .arg(model)
-        .output()
-        .expect("node runs");
-    assert!(
-        o.status.success(),
-        "the validator failed on {}: {}",
-        model.display(),
-        String::from_utf8_lossy(&o.stderr)
-    );
-    serde_json::from_slice(&o.stdout).expect("the validator prints JSON")
-}
-
 #[test]
 fn rewritten_models_pass_the_khronos_validator() {
     if !common::GLTF_VALIDATOR.available() {
@@ -323,17 +306,28 @@ fn rewritten_models_pass_the_khronos_validator() {
         ("assets/cube/cube_gradient_128.glb", "cube_gradient_128.glb"),
     ] {
         let out = scratch(&format!("validate-{name}"));
-        process(&shared().join(rel), &out);
+        // Default options: BoxTextured's 211² texture is resized.
+        let o = seamstress(&[
+            "process",
+            shared().join(rel).to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ]);
+        assert!(
+            o.status.success(),
+            "{rel}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
         let model = out.join(name);
         assert!(model.exists(), "{rel}: no rewritten model");
-        let verdict = gltf_validate(&model);
+        let verdict = common::gltf_validate(&model);
         assert_eq!(verdict["errors"], 0, "{rel}: {verdict}");
         if name.ends_with(".glb") {
             // One file out for one file in: nothing but the model is needed.
             let alone = scratch(&format!("validate-alone-{name}"));
             std::fs::create_dir_all(&alone).unwrap();
             std::fs::copy(&model, alone.join(name)).unwrap();
-            let verdict = gltf_validate(&alone.join(name));
+            let verdict = common::gltf_validate(&alone.join(name));
             assert_eq!(verdict["errors"], 0, "{rel} on its own: {verdict}");
         }
     }

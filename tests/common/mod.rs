@@ -147,3 +147,21 @@ pub fn limit_address_space(cmd: &mut Command, bytes: u64) {
         });
     }
 }
+
+/// The Khronos validator's verdict on a model written by `process` (needs
+/// [`GLTF_VALIDATOR`]).
+pub fn gltf_validate(model: &Path) -> Value {
+    let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/tools/gltf_validate.js");
+    let o = Command::new("node")
+        .arg(script)
+        .arg(model)
+        .output()
+        .expect("node runs");
+    assert!(
+        o.status.success(),
+        "the validator failed on {}: {}",
+        model.display(),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    serde_json::from_slice(&o.stdout).expect("the validator prints JSON")
+}
