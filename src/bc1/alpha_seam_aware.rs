@@ -89,22 +89,15 @@ impl Search<'_> {
         e / self.dec.len() as f64
     }
 
-    fn values(&self, b: usize) -> ([f32; 16], [f32; 16]) {
-        let mut v = [0.0; 16];
-        let mut w = [0.0; 16];
-        for k in 0..16 {
-            if let Some(t) = self.texel(b, k) {
-                v[k] = self.p.target[t] * 255.0;
-                w[k] = if self.p.inside[t] { 1.0 } else { 1e-2 };
-            }
-        }
-        (v, w)
+    /// The block's target alphas, 0–255 (0 in the padding).
+    fn values(&self, b: usize) -> [f32; 16] {
+        std::array::from_fn(|k| self.texel(b, k).map_or(0.0, |t| self.p.target[t] * 255.0))
     }
 
     /// One block's turn: returns the block it settles on.
     fn improve(&mut self, b: usize, s: usize, current: AlphaBlock) -> AlphaBlock {
         let mut best = (current, self.energy(b, s));
-        let (values, weights) = self.values(b);
+        let values = self.values(b);
         let try_block = |this: &mut Self, cand: AlphaBlock, best: &mut (AlphaBlock, f64)| {
             this.set(b, &cand);
             let e = this.energy(b, s);
@@ -127,17 +120,16 @@ impl Search<'_> {
                         .iter()
                         .map(|d| d.alpha_palette(c0, c1))
                         .collect();
+                    // Indices for fidelity; the per-texel pass below
+                    // weighs the seams.
                     let idx: [u8; 16] = std::array::from_fn(|k| {
+                        let err = |i: u8| -> f32 {
+                            pals.iter()
+                                .map(|p| (p[i as usize] - values[k]).powi(2))
+                                .sum()
+                        };
                         (0..8u8)
-                            .min_by(|&m, &n| {
-                                let err = |i: u8| -> f32 {
-                                    pals.iter()
-                                        .map(|p| (p[i as usize] - values[k]).powi(2))
-                                        .sum::<f32>()
-                                        * weights[k].max(1e-6)
-                                };
-                                err(m).total_cmp(&err(n))
-                            })
+                            .min_by(|&m, &n| err(m).total_cmp(&err(n)))
                             .unwrap_or(0)
                     });
                     try_block(self, AlphaBlock::with_indices(c0, c1, &idx), &mut best);
