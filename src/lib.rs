@@ -6,6 +6,7 @@
 //! [`budget`] decides from a model's plan whether a job may run at all;
 //! [`service`] runs the pipeline behind HTTP.
 
+pub mod batch;
 pub mod bc1;
 pub mod budget;
 pub mod heap;

@@ -1,20 +1,21 @@
-//! The `seamstress` command line: `process` runs the engine on one model.
+//! The `seamstress` command line: `process` runs the engine on one model
+//! or a batch of them, `serve` runs the HTTP service.
 
 use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::ExitCode;
 
 use anyhow::Context;
 use clap::{Parser, Subcommand};
 
+use seamstress::batch::run::{run_model, BatchOptions, ModelFiles, RunError};
+use seamstress::batch::{self, BatchModel};
 use seamstress::bc1::Level;
 use seamstress::budget::{self, Limits};
-use seamstress::model::rewrite::referenced_files;
-use seamstress::model::{DirResolver, LoadOptions};
-use seamstress::pipeline::job::REPORT_NAME;
+use seamstress::model::LoadOptions;
 use seamstress::pipeline::{
-    self, AlphaOption, Format, JobError, JobInput, JobSettings, Method, NoSink, ProcessOptions,
-    Resize, Target, DEFAULT_SEAM_TOLERANCE, DEFAULT_SEAM_WEIGHT,
+    self, AlphaOption, Format, JobSettings, Method, NoSink, ProcessOptions, Resize, Target,
+    DEFAULT_SEAM_TOLERANCE, DEFAULT_SEAM_WEIGHT,
 };
 use seamstress::seam::erase::Mode;
 
@@ -43,7 +44,8 @@ enum LogFormat {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Erase the seams of every colour texture of a model and encode it to BC1.
+    /// Erase the seams of every colour texture of one model, or of every
+    /// model of files, folders and glob patterns, and encode them to BC1.
     Process(ProcessArgs),
     /// Run the HTTP service: a durable job queue and a worker pool over the engine.
     Serve(Box<seamstress::service::ServeArgs>),
@@ -57,11 +59,28 @@ enum Command {
 
 #[derive(clap::Args)]
 struct ProcessArgs {
-    /// A .glb, or a .gltf with its files beside it.
-    input: PathBuf,
+    /// .glb files, .gltf files with their files beside them, folders
+    /// (every model below them) and glob patterns ('assets/**/*.glb').
+    /// One model file writes into --out; anything else mirrors the inputs
+    /// under --out, a folder per model.
+    #[arg(required = true, value_name = "INPUT")]
+    inputs: Vec<PathBuf>,
     /// Folder for the outputs (created if missing).
     #[arg(long)]
     out: PathBuf,
+    /// Models processed at once (a batch).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..))]
+    jobs: u16,
+    /// Go on with the other models after one fails (a batch).
+    #[arg(long)]
+    keep_going: bool,
+    /// Process every model of a batch, also those whose outputs are those
+    /// of their unchanged inputs and options.
+    #[arg(long)]
+    force: bool,
+    /// Also write the batch's summary as JSON into this file.
+    #[arg(long, value_name = "FILE")]
+    summary: Option<PathBuf>,
     /// How far from the seams texels may change: local, or global (changes
     /// spread over the charts, for sides painted with a colour offset).
     #[arg(long, value_parser = word::<Mode>, default_value = "local")]
@@ -223,155 +242,149 @@ fn process(args: &ProcessArgs) -> Result<(), Failure> {
             args.out.display()
         )));
     }
-    // Every file is written into a folder of this run's own, then renamed
-    // into place: runs sharing an --out never see each other's halves.
-    let mut staging = Staging::create(&args.out).map_err(|e| {
-        Failure::BadInput(format!(
-            "--out {}: cannot write there: {e}",
-            args.out.display()
-        ))
-    })?;
-
-    let load_opts = LoadOptions {
-        max_texture_size: args.max_texture_size,
-        extra_maps: args.extra_maps,
-        ..LoadOptions::default()
-    };
-    let opts = ProcessOptions {
-        mode: args.mode,
-        method: args.method,
-        format: args.format,
-        bc1_level: args.bc1_level,
-        seam_aware: !args.no_seam_aware,
-        seam_weight: args.seam_weight,
-        mips: args.mips,
-        dx10: args.dx10,
-        seam_tolerance: args.seam_tolerance,
-        erase_all: args.erase_all,
-        pictures: args.pictures,
-        decoder: args.decoder,
-        resize: args.resize,
-        alpha: args.alpha,
-    };
-    let limits = Limits {
-        max_memory: args.max_memory.unwrap_or_else(budget::usable_memory),
-    };
-    let name = args.input.display().to_string();
-    let main = std::fs::read(&args.input).map_err(|e| {
-        let message = format!("{name}: cannot read it: {e}");
-        match e.kind() {
-            std::io::ErrorKind::NotFound | std::io::ErrorKind::IsADirectory => {
-                Failure::BadInput(message)
-            }
-            _ => Failure::Internal(anyhow::anyhow!(message)),
-        }
-    })?;
-    let dir = match args.input.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p,
-        _ => Path::new("."),
-    };
-    let files = DirResolver::new(dir).with_context(|| format!("cannot open {}", dir.display()))?;
-    let input = JobInput {
-        name: &name,
-        main: &main,
-        files: &files,
-    };
+    let models = batch::discover(&args.inputs).map_err(|e| Failure::BadInput(e.to_string()))?;
     let settings = JobSettings {
-        process: opts,
-        load: load_opts,
-        limits,
+        process: ProcessOptions {
+            mode: args.mode,
+            method: args.method,
+            format: args.format,
+            bc1_level: args.bc1_level,
+            seam_aware: !args.no_seam_aware,
+            seam_weight: args.seam_weight,
+            mips: args.mips,
+            dx10: args.dx10,
+            seam_tolerance: args.seam_tolerance,
+            erase_all: args.erase_all,
+            pictures: args.pictures,
+            decoder: args.decoder,
+            resize: args.resize,
+            alpha: args.alpha,
+        },
+        load: LoadOptions {
+            max_texture_size: args.max_texture_size,
+            extra_maps: args.extra_maps,
+            ..LoadOptions::default()
+        },
+        limits: Limits {
+            max_memory: args.max_memory.unwrap_or_else(budget::usable_memory),
+        },
     };
-    let output = pipeline::run_job(&input, &settings, &mut NoSink).map_err(|e| match e {
-        JobError::BadInput(m) | JobError::TooLarge(m) => Failure::BadInput(m),
-        e => Failure::Internal(anyhow::anyhow!("processing failed: {e}")),
-    })?;
-
-    // Written into the model's own folder, the rewritten model and its
-    // files would replace the originals: those are left as they are.
-    let same_folder = match (args.out.canonicalize(), dir.canonicalize()) {
-        (Ok(a), Ok(b)) => a == b,
-        _ => false,
-    };
-    let mut originals = referenced_files(&main).unwrap_or_default();
-    originals.extend(
-        args.input
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned()),
-    );
-    for f in &output.files {
-        if same_folder && originals.contains(&f.name) {
-            tracing::warn!(file = %f.name, "not written: --out is the model's folder and holds it");
-            continue;
+    match &models[..] {
+        [one] if one.out.as_os_str().is_empty() => {
+            let model = ModelFiles::read(&one.path)?;
+            let written = run_model(&model, &one.path, &args.out, &settings, &mut NoSink)?;
+            std::io::stdout()
+                .write_all(&written.report)
+                .context("cannot write to standard output")?;
+            Ok(())
         }
-        staging.write(&f.name, &f.bytes)?;
+        _ => process_batch(args, &models, &settings),
     }
-    staging.publish()?;
-    let report = output
-        .files
-        .iter()
-        .find(|f| f.name == REPORT_NAME)
-        .map_or(&[][..], |f| &f.bytes[..]);
-    std::io::stdout()
-        .write_all(report)
-        .context("cannot write to standard output")?;
+}
+
+impl From<RunError> for Failure {
+    fn from(e: RunError) -> Self {
+        match e {
+            RunError::BadInput(m) => Failure::BadInput(m),
+            RunError::Internal(m) => Failure::Internal(anyhow::anyhow!(m)),
+        }
+    }
+}
+
+/// A batch: a progress bar on a terminal (plain lines otherwise), the
+/// summary at the end; exit status 1 if a model failed inside, else 2 if
+/// one was bad input.
+fn process_batch(
+    args: &ProcessArgs,
+    models: &[BatchModel],
+    settings: &JobSettings,
+) -> Result<(), Failure> {
+    let opts = BatchOptions {
+        out: args.out.clone(),
+        jobs: usize::from(args.jobs),
+        keep_going: args.keep_going,
+        force: args.force,
+    };
+    let progress = BatchProgress::new(models.len());
+    let summary = batch::run::run_batch(models, settings, &opts, &progress);
+    progress.bar.finish_and_clear();
+    eprint!("{}", summary.text());
+    if let Some(path) = &args.summary {
+        let json = serde_json::to_vec_pretty(&summary).context("summary")?;
+        std::fs::write(path, json)
+            .with_context(|| format!("cannot write the summary to {}", path.display()))?;
+    }
+    if summary.failed > 0 {
+        return Err(Failure::Internal(anyhow::anyhow!(
+            "{} of {} models failed",
+            summary.failed,
+            summary.models
+        )));
+    }
+    if summary.bad_input > 0 {
+        return Err(Failure::BadInput(format!(
+            "{} of {} models are bad input",
+            summary.bad_input, summary.models
+        )));
+    }
     Ok(())
 }
 
-/// A run's private folder inside `--out` (removed when dropped): files are
-/// written and synced there, then renamed into `--out` one by one, so a
-/// reader never sees half a file and concurrent runs never clash.
-struct Staging {
-    out: PathBuf,
-    dir: PathBuf,
-    names: Vec<String>,
+/// A batch's progress: a bar with models done, the current stage and the
+/// ETA when standard error is a terminal, a line per model otherwise.
+struct BatchProgress {
+    bar: indicatif::ProgressBar,
+    terminal: bool,
+    total: usize,
+    done: std::sync::atomic::AtomicUsize,
 }
 
-impl Staging {
-    fn create(out: &Path) -> std::io::Result<Staging> {
-        std::fs::create_dir_all(out)?;
-        let nanos = std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map_or(0, |d| d.subsec_nanos());
-        let dir = out.join(format!(".seamstress-{}-{nanos:08x}", std::process::id()));
-        std::fs::create_dir(&dir)?;
-        Ok(Staging {
-            out: out.to_path_buf(),
-            dir,
-            names: Vec::new(),
-        })
-    }
-
-    fn write(&mut self, name: &str, bytes: &[u8]) -> anyhow::Result<()> {
-        let path = self.dir.join(name);
-        if let Some(parent) = path.parent() {
-            std::fs::create_dir_all(parent)
-                .with_context(|| format!("cannot create {}", parent.display()))?;
+impl BatchProgress {
+    fn new(total: usize) -> Self {
+        let terminal = std::io::IsTerminal::is_terminal(&std::io::stderr());
+        let bar = if terminal {
+            let bar = indicatif::ProgressBar::new(total as u64);
+            bar.set_style(
+                indicatif::ProgressStyle::with_template(
+                    "{bar:30} {pos}/{len} models, ETA {eta} {wide_msg}",
+                )
+                .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+            );
+            bar
+        } else {
+            indicatif::ProgressBar::hidden()
+        };
+        BatchProgress {
+            bar,
+            terminal,
+            total,
+            done: std::sync::atomic::AtomicUsize::new(0),
         }
-        let mut f = std::fs::File::create(&path)
-            .with_context(|| format!("cannot create {}", path.display()))?;
-        f.write_all(bytes)
-            .and_then(|_| f.sync_all())
-            .with_context(|| format!("cannot write {}", path.display()))?;
-        self.names.push(name.to_string());
-        Ok(())
-    }
-
-    fn publish(&self) -> anyhow::Result<()> {
-        for name in &self.names {
-            let to = self.out.join(name);
-            if let Some(parent) = to.parent() {
-                std::fs::create_dir_all(parent)
-                    .with_context(|| format!("cannot create {}", parent.display()))?;
-            }
-            std::fs::rename(self.dir.join(name), &to)
-                .with_context(|| format!("cannot write {}", to.display()))?;
-        }
-        Ok(())
     }
 }
 
-impl Drop for Staging {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.dir);
+impl batch::run::Observer for BatchProgress {
+    fn started(&self, _: usize, model: &BatchModel) {
+        self.bar.set_message(model.path.display().to_string());
+    }
+
+    fn progress(&self, _: usize, model: &BatchModel, at: &pipeline::Progress<'_>) {
+        let texture = at
+            .texture
+            .map(|(i, n)| format!(" texture {}/{n}", i + 1))
+            .unwrap_or_default();
+        self.bar
+            .set_message(format!("{}: {}{texture}", model.path.display(), at.stage));
+    }
+
+    fn finished(&self, _: usize, outcome: &batch::ModelOutcome) {
+        self.bar.inc(1);
+        if !self.terminal {
+            let n = self.done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+            eprintln!(
+                "[{n}/{}] {} {} ({:.1} s)",
+                self.total, outcome.status, outcome.model, outcome.seconds
+            );
+        }
     }
 }

@@ -1,0 +1,254 @@
+//! `process` over many models: a folder of every shared model with a bad
+//! one mixed in, the mirrored output tree, the summary, exit statuses, and
+//! a second run served from the cache.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use serde_json::Value;
+
+fn shared() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/assets")
+}
+
+fn scratch(tag: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("seamstress-batch-{}-{tag}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+fn copy_tree(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let p = e.unwrap().path();
+        let dest = to.join(p.file_name().unwrap());
+        if p.is_dir() {
+            copy_tree(&p, &dest);
+        } else {
+            std::fs::copy(&p, &dest).unwrap();
+        }
+    }
+}
+
+fn process(args: &[&Path], extra: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_seamstress"))
+        .arg("process")
+        .args(args)
+        .args(extra)
+        .output()
+        .expect("seamstress runs")
+}
+
+fn summary(path: &Path) -> Value {
+    serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap()
+}
+
+fn statuses(s: &Value) -> Vec<(String, String)> {
+    s["outcomes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|o| {
+            let model = o["model"].as_str().unwrap().to_string();
+            (model, o["status"].as_str().unwrap().to_string())
+        })
+        .collect()
+}
+
+/// Every shared model but the negative ones, and one of those: a GLB whose
+/// mesh needs Draco.
+fn farm_folder(dir: &Path) -> (PathBuf, usize) {
+    let input = dir.join("in");
+    for e in std::fs::read_dir(shared()).unwrap() {
+        let p = e.unwrap().path();
+        if p.is_dir() && p.file_name().unwrap() != "negative" {
+            copy_tree(&p, &input.join(p.file_name().unwrap()));
+        }
+    }
+    std::fs::copy(
+        shared().join("negative/BoxTextured_draco.glb"),
+        input.join("draco.glb"),
+    )
+    .unwrap();
+    let mut models = 0;
+    let mut dirs = vec![input.clone()];
+    while let Some(d) = dirs.pop() {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                dirs.push(p);
+            } else if p.extension().is_some_and(|x| x == "glb" || x == "gltf") {
+                models += 1;
+            }
+        }
+    }
+    (input, models)
+}
+
+#[test]
+fn a_folder_of_every_shared_model_with_a_bad_one_then_from_the_cache() {
+    let dir = scratch("farm");
+    let (input, models) = farm_folder(&dir);
+    let out = dir.join("out");
+    let sum = dir.join("summary.json");
+    let sum_s = sum.to_str().unwrap();
+    let o = process(
+        &[&input],
+        &[
+            "--out",
+            out.to_str().unwrap(),
+            "--jobs",
+            "2",
+            "--keep-going",
+            "--summary",
+            sum_s,
+        ],
+    );
+    // Some inputs bad: exit 2, the others all done.
+    assert_eq!(
+        o.status.code(),
+        Some(2),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let s = summary(&sum);
+    assert_eq!(s["models"], models);
+    assert_eq!(s["processed"], models - 1, "{s}");
+    assert_eq!(s["bad_input"], 1);
+    let bad: Vec<_> = statuses(&s)
+        .into_iter()
+        .filter(|(_, st)| st != "processed")
+        .collect();
+    assert_eq!(bad.len(), 1);
+    assert!(bad[0].0.ends_with("draco.glb"), "{bad:?}");
+    assert!(s["seam_rms_after"].as_f64().unwrap() < s["seam_rms_before"].as_f64().unwrap());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("KHR_draco_mesh_compression"), "{err}");
+
+    // The tree mirrors the inputs; each folder is what `process` writes for
+    // that model alone.
+    let duck = out.join("Duck/Duck");
+    for f in ["report.json", "Duck.gltf"] {
+        assert!(duck.join(f).is_file(), "{f} missing in {}", duck.display());
+    }
+    assert!(out
+        .join("cube/cube_gradient_128/cube_gradient_128.glb")
+        .is_file());
+    let alone = dir.join("alone");
+    let o = process(
+        &[&input.join("Duck/Duck.gltf")],
+        &["--out", alone.to_str().unwrap()],
+    );
+    assert!(o.status.success());
+    for e in std::fs::read_dir(&alone).unwrap() {
+        let p = e.unwrap().path();
+        let name = p.file_name().unwrap().to_str().unwrap().to_string();
+        let ours = std::fs::read(duck.join(&name)).unwrap();
+        if name == "report.json" {
+            let strip = |b: &[u8]| {
+                let mut v: Value = serde_json::from_slice(b).unwrap();
+                for t in v["textures"].as_array_mut().unwrap() {
+                    t.as_object_mut().unwrap().remove("timings_ms");
+                }
+                v.as_object_mut().unwrap().remove("input");
+                v
+            };
+            assert_eq!(strip(&ours), strip(&std::fs::read(&p).unwrap()));
+        } else {
+            assert_eq!(ours, std::fs::read(&p).unwrap(), "{name}");
+        }
+    }
+
+    // Again, unchanged: everything from the cache.
+    let o = process(
+        &[&input],
+        &[
+            "--out",
+            out.to_str().unwrap(),
+            "--keep-going",
+            "--summary",
+            sum_s,
+        ],
+    );
+    assert_eq!(o.status.code(), Some(2));
+    let s = summary(&sum);
+    assert_eq!(s["cached"], models - 1, "{s}");
+    assert_eq!(s["processed"], 0);
+
+    // A changed image redoes its model only; --force redoes them all.
+    let png = input.join("BoxTextured/BoxTextured-glTF/CesiumLogoFlat.png");
+    let mut img = image::open(&png).unwrap().to_rgb8();
+    img.get_pixel_mut(5, 5).0 = [255, 0, 0];
+    img.save(&png).unwrap();
+    let o = process(
+        &[&input],
+        &[
+            "--out",
+            out.to_str().unwrap(),
+            "--keep-going",
+            "--summary",
+            sum_s,
+        ],
+    );
+    assert_eq!(o.status.code(), Some(2));
+    let s = summary(&sum);
+    assert_eq!(s["cached"], models - 2, "{s}");
+    let redone: Vec<_> = statuses(&s)
+        .into_iter()
+        .filter(|(_, st)| st == "processed")
+        .map(|(m, _)| m)
+        .collect();
+    assert_eq!(redone.len(), 1, "{s}");
+    assert!(
+        redone[0].ends_with("BoxTextured-glTF/BoxTextured.gltf"),
+        "{redone:?}"
+    );
+    let cubes = dir.join("cubes");
+    for force in [false, true] {
+        let mut extra = vec!["--out", cubes.to_str().unwrap(), "--summary", sum_s];
+        if force {
+            extra.push("--force");
+        }
+        let o = process(&[&input.join("cube")], &extra);
+        assert!(o.status.success());
+        assert_eq!(summary(&sum)["processed"], 3);
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn without_keep_going_a_batch_stops_at_the_first_failure() {
+    let dir = scratch("stop");
+    let bad = dir.join("draco.glb");
+    std::fs::copy(shared().join("negative/BoxTextured_draco.glb"), &bad).unwrap();
+    let out = dir.join("out");
+    let sum = dir.join("summary.json");
+    let o = process(
+        &[&bad, &shared().join("cube")],
+        &[
+            "--out",
+            out.to_str().unwrap(),
+            "--summary",
+            sum.to_str().unwrap(),
+        ],
+    );
+    assert_eq!(o.status.code(), Some(2));
+    let s = summary(&sum);
+    assert_eq!(s["bad_input"], 1);
+    assert_eq!(s["not_run"], 3, "{s}");
+    // Glob patterns expand relative to their literal prefix.
+    let pattern = format!("{}/*_128.glb", shared().join("cube").display());
+    let o = process(
+        &[Path::new(&pattern)],
+        &[
+            "--out",
+            out.to_str().unwrap(),
+            "--summary",
+            sum.to_str().unwrap(),
+        ],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(out.join("cube_gradient_128/report.json").is_file());
+    let _ = std::fs::remove_dir_all(&dir);
+}
