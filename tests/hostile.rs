@@ -232,7 +232,7 @@ fn concurrent_runs_into_one_out_neither_fail_nor_mix() {
     };
     let reference = run();
     assert!(reference.status.success());
-    let dds = std::fs::read(out.join("image0.dds")).unwrap();
+    let dds = std::fs::read(out.join("cube_gradient_128.dds")).unwrap();
     for _ in 0..4 {
         let (a, b) = std::thread::scope(|s| {
             let a = s.spawn(run);
@@ -242,7 +242,10 @@ fn concurrent_runs_into_one_out_neither_fail_nor_mix() {
         for o in [a, b] {
             assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
         }
-        assert_eq!(std::fs::read(out.join("image0.dds")).unwrap(), dds);
+        assert_eq!(
+            std::fs::read(out.join("cube_gradient_128.dds")).unwrap(),
+            dds
+        );
     }
     // Only the outputs remain: no staging folders or temporary files.
     for e in std::fs::read_dir(&out).unwrap() {

@@ -67,7 +67,7 @@ fn fox_loads() {
     assert_eq!(b.triangles.len(), 980);
     assert_eq!((b.wrap_s, b.wrap_t), (Wrap::Repeat, Wrap::Repeat));
     assert!(b.srgb);
-    assert_eq!(b.name, "image0");
+    assert_eq!(b.name, "Fox", "an unnamed image takes the model's stem");
     // This copy's V range lies in 1.02..1.99 and relies on REPEAT.
     let (lo, hi) = b
         .triangles
@@ -137,7 +137,7 @@ fn box_textured_forms_agree() {
     assert_eq!((g.wrap_s, g.wrap_t), (Wrap::Repeat, Wrap::Repeat));
     assert_eq!((e.wrap_s, e.wrap_t), (Wrap::Repeat, Wrap::Repeat));
     assert_eq!(s.name, "CesiumLogoFlat");
-    assert_eq!(g.name, "image0");
+    assert_eq!(g.name, "BoxTextured");
 }
 
 #[test]

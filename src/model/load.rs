@@ -275,7 +275,13 @@ pub fn plan_from_memory(
     files: &dyn Resolver,
     opts: &LoadOptions,
 ) -> Result<Plan, LoadError> {
-    match Loader::run(main, files, opts) {
+    // Images without a name of their own are called after the model, so
+    // that a batch's files do not all say `image0`.
+    let stem = Path::new(main_name)
+        .file_stem()
+        .map(|s| sanitize(&s.to_string_lossy()))
+        .unwrap_or_default();
+    match Loader::run(main, files, opts, &stem) {
         Ok(mut plan) => {
             plan.file = printable(main_name);
             Ok(plan)
@@ -991,6 +997,7 @@ impl<'a> Loader<'a> {
         main: &'a [u8],
         files: &'a dyn Resolver,
         opts: &LoadOptions,
+        stem: &str,
     ) -> Result<Plan, LoadErrorKind> {
         let container = split_container(main)?;
         let root = parse_root(container.json)?;
@@ -1010,7 +1017,7 @@ impl<'a> Loader<'a> {
             accessors,
         };
         loader.check_images(files)?;
-        loader.plan(files, opts)
+        loader.plan(files, opts, stem)
     }
 
     fn view_bytes(&self, view: usize) -> Result<&[u8], LoadErrorKind> {
@@ -1325,7 +1332,12 @@ impl<'a> Loader<'a> {
         Ok(MaterialUses { uses, normal_maps })
     }
 
-    fn plan(&self, files: &'a dyn Resolver, opts: &LoadOptions) -> Result<Plan, LoadErrorKind> {
+    fn plan(
+        &self,
+        files: &'a dyn Resolver,
+        opts: &LoadOptions,
+        stem: &str,
+    ) -> Result<Plan, LoadErrorKind> {
         let MaterialUses { uses, normal_maps } = self.material_uses(opts)?;
         let mut builders: BTreeMap<usize, BindingBuilder> = BTreeMap::new();
         let mut skipped = Vec::new();
@@ -1498,7 +1510,7 @@ impl<'a> Loader<'a> {
             let bytes = self.image_bytes(image, files)?.into_owned();
             let header = Texture::probe(&bytes, opts.max_texture_size)
                 .map_err(|source| LoadErrorKind::Texture { image, source })?;
-            let name = names.claim(&self.image_name_candidates(image), image);
+            let name = names.claim(&self.image_name_candidates(image), stem, image);
             let (wrap_s, wrap_t) = b.wrap.unwrap_or_default();
             textures.push(PlannedTexture {
                 image,
@@ -1688,11 +1700,14 @@ struct NameSet {
 impl NameSet {
     /// First usable candidate, made file-name safe, else `image<N>`; made
     /// unique case-insensitively (some file systems fold case).
-    fn claim(&mut self, candidates: &[String], image: usize) -> String {
+    /// The first usable candidate, else `stem`, else `image<N>`; made
+    /// unique with `_1`, `_2`, ...
+    fn claim(&mut self, candidates: &[String], stem: &str, image: usize) -> String {
         let base = candidates
             .iter()
             .map(|c| sanitize(c))
             .find(|c| !c.is_empty())
+            .or_else(|| (!stem.is_empty()).then(|| stem.to_string()))
             .unwrap_or_else(|| format!("image{image}"));
         let mut name = base.clone();
         let mut k = 1;
@@ -1810,12 +1825,15 @@ mod tests {
     #[test]
     fn names_are_safe_and_unique() {
         let mut set = NameSet::default();
-        assert_eq!(set.claim(&["Albedo.PNG".into()], 0), "Albedo");
-        assert_eq!(set.claim(&["albedo".into()], 1), "albedo_1");
-        assert_eq!(set.claim(&["../../etc/x y".into()], 2), "_.._etc_x_y");
-        assert_eq!(set.claim(&["".into(), "con.png".into()], 3), "_con");
-        assert_eq!(set.claim(&["///".into()], 4), "image4");
-        assert_eq!(set.claim(&[], 5), "image5");
+        assert_eq!(set.claim(&["Albedo.PNG".into()], "", 0), "Albedo");
+        assert_eq!(set.claim(&["albedo".into()], "", 1), "albedo_1");
+        assert_eq!(set.claim(&["../../etc/x y".into()], "", 2), "_.._etc_x_y");
+        assert_eq!(set.claim(&["".into(), "con.png".into()], "", 3), "_con");
+        assert_eq!(set.claim(&["///".into()], "", 4), "image4");
+        assert_eq!(set.claim(&[], "", 5), "image5");
+        // Unnamed images take the model's stem.
+        assert_eq!(set.claim(&[], "crate", 6), "crate");
+        assert_eq!(set.claim(&["///".into()], "crate", 7), "crate_1");
     }
 
     #[test]

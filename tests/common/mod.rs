@@ -29,6 +29,13 @@ pub const TEXTURE2DDECODER: Tool = Tool {
     install: "python3 -m pip install texture2ddecoder pillow",
 };
 
+/// Headless Chromium (WebGL on SwiftShader), for three.js renders.
+pub const CHROMIUM: Tool = Tool {
+    name: "chromium",
+    probe: &["chromium", "--version"],
+    install: "apt-get install chromium",
+};
+
 /// The OpenAPI contract tester.
 pub const SCHEMATHESIS: Tool = Tool {
     name: "schemathesis",
