@@ -52,16 +52,7 @@ fn alpha_duck(
 }
 
 fn process(model: &Path, out: &Path, extra: &[&str]) -> Value {
-    let o = Command::new(env!("CARGO_BIN_EXE_seamstress"))
-        .arg("process")
-        .arg(model)
-        .arg("--out")
-        .arg(out)
-        .args(extra)
-        .output()
-        .expect("seamstress runs");
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap()
+    common::process_report(model, out, extra)
 }
 
 fn f(v: &Value) -> f64 {

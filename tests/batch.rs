@@ -86,6 +86,22 @@ fn farm_folder(dir: &Path) -> (PathBuf, usize) {
     (input, models)
 }
 
+/// The farm folder once more, kept going past its bad model: the summary.
+fn again(input: &Path, out: &Path, sum: &Path) -> Value {
+    let o = process(
+        &[input],
+        &[
+            "--out",
+            out.to_str().unwrap(),
+            "--keep-going",
+            "--summary",
+            sum.to_str().unwrap(),
+        ],
+    );
+    assert_eq!(o.status.code(), Some(2));
+    summary(sum)
+}
+
 #[test]
 fn a_folder_of_every_shared_model_with_a_bad_one_then_from_the_cache() {
     let dir = scratch("farm");
@@ -161,18 +177,7 @@ fn a_folder_of_every_shared_model_with_a_bad_one_then_from_the_cache() {
     }
 
     // Again, unchanged: everything from the cache.
-    let o = process(
-        &[&input],
-        &[
-            "--out",
-            out.to_str().unwrap(),
-            "--keep-going",
-            "--summary",
-            sum_s,
-        ],
-    );
-    assert_eq!(o.status.code(), Some(2));
-    let s = summary(&sum);
+    let s = again(&input, &out, &sum);
     assert_eq!(s["cached"], models - 1, "{s}");
     assert_eq!(s["processed"], 0);
 
@@ -181,18 +186,7 @@ fn a_folder_of_every_shared_model_with_a_bad_one_then_from_the_cache() {
     let mut img = image::open(&png).unwrap().to_rgb8();
     img.get_pixel_mut(5, 5).0 = [255, 0, 0];
     img.save(&png).unwrap();
-    let o = process(
-        &[&input],
-        &[
-            "--out",
-            out.to_str().unwrap(),
-            "--keep-going",
-            "--summary",
-            sum_s,
-        ],
-    );
-    assert_eq!(o.status.code(), Some(2));
-    let s = summary(&sum);
+    let s = again(&input, &out, &sum);
     assert_eq!(s["cached"], models - 2, "{s}");
     let redone: Vec<_> = statuses(&s)
         .into_iter()

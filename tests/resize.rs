@@ -75,16 +75,7 @@ fn box_in_one_period(dir: &Path) -> (PathBuf, [f64; 2]) {
 }
 
 fn process(model: &Path, out: &Path, extra: &[&str]) -> Value {
-    let o = Command::new(env!("CARGO_BIN_EXE_seamstress"))
-        .arg("process")
-        .arg(model)
-        .arg("--out")
-        .arg(out)
-        .args(extra)
-        .output()
-        .expect("seamstress runs");
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap()
+    common::process_report(model, out, extra)
 }
 
 /// BoxTextured's sampler: MIRRORED_REPEAT across, CLAMP_TO_EDGE down.

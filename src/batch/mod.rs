@@ -1,5 +1,5 @@
 //! Many models through one command: which models a batch holds and where
-//! each one's outputs go ([`discover`]), whether a model's outputs are
+//! each one's outputs go ([`discover()`]), whether a model's outputs are
 //! still those of its inputs ([`cache`]), and what the batch did
 //! ([`summary`]). The CLI's `process` runs a batch on these; the layout is
 //! the contract a client writing the same tree must keep.

@@ -172,3 +172,18 @@ pub fn gltf_validate(model: &Path) -> Value {
     );
     serde_json::from_slice(&o.stdout).expect("the validator prints JSON")
 }
+
+/// Runs `seamstress process MODEL --out OUT EXTRA...`, which must succeed,
+/// and returns its `report.json`.
+pub fn process_report(model: &Path, out: &Path, extra: &[&str]) -> Value {
+    let o = Command::new(env!("CARGO_BIN_EXE_seamstress"))
+        .arg("process")
+        .arg(model)
+        .arg("--out")
+        .arg(out)
+        .args(extra)
+        .output()
+        .expect("seamstress runs");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap()
+}
