@@ -180,10 +180,15 @@ fn pad(t: &Texture, nw: usize, nh: usize, wrap_s: Wrap, wrap_t: Wrap) -> Texture
             data.extend_from_slice(&t.data[at..at + c]);
         }
     }
+    like(t, nw, nh, data)
+}
+
+/// A texture of `t`'s channels and encoding, `nw`×`nh`, holding `data`.
+fn like(t: &Texture, nw: usize, nh: usize, data: Vec<f32>) -> Texture {
     Texture {
         width: nw,
         height: nh,
-        channels: c,
+        channels: t.channels,
         data,
         encoding: t.encoding,
     }
@@ -217,13 +222,7 @@ fn resample(t: &Texture, nw: usize, nh: usize, wrap_s: Wrap, wrap_t: Wrap) -> Te
             }
         }
     }
-    Texture {
-        width: nw,
-        height: nh,
-        channels: c,
-        data,
-        encoding: t.encoding,
-    }
+    like(t, nw, nh, data)
 }
 
 #[cfg(test)]

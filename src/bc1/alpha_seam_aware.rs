@@ -58,9 +58,9 @@ impl Search<'_> {
         }
     }
 
-    /// Block `b`'s share of the energy: its texels' fidelity and every seam
-    /// point that taps it.
-    fn energy(&self, b: usize, s: usize) -> f64 {
+    /// Σ w (decoded − target)² over block `b`'s texels, summed over the
+    /// decoders.
+    fn fidelity(&self, b: usize) -> f64 {
         let mut e = 0.0;
         for k in 0..16 {
             if let Some(t) = self.texel(b, k) {
@@ -75,18 +75,38 @@ impl Search<'_> {
                 }
             }
         }
-        for &q in &self.touches[s] {
-            let q = &self.p.points[q as usize];
-            for dec in &self.dec {
+        e
+    }
+
+    /// α·weight·(B₁ − B₂)² of seam point `q`, summed over the decoders.
+    fn seam(&self, q: u32) -> f64 {
+        let q = &self.p.points[q as usize];
+        self.dec
+            .iter()
+            .map(|dec| {
                 let v: f64 = q
                     .taps
                     .iter()
                     .map(|&(t, w)| w * f64::from(dec[t as usize]))
                     .sum();
-                e += self.opts.alpha * q.weight * v * v;
-            }
-        }
-        e / self.dec.len() as f64
+                self.opts.alpha * q.weight * v * v
+            })
+            .sum()
+    }
+
+    /// Block `b`'s share of the energy (mean over the decoders): its
+    /// texels' fidelity and every seam point that taps it. Nothing else
+    /// changes when the block does.
+    fn energy(&self, b: usize, s: usize) -> f64 {
+        let seams: f64 = self.touches[s].iter().map(|&q| self.seam(q)).sum();
+        (self.fidelity(b) + seams) / self.dec.len() as f64
+    }
+
+    /// E_c + α·E_s over the footprint blocks, the mean over the decoders.
+    fn total(&self, footprint: &[usize]) -> f64 {
+        let fidelity: f64 = footprint.iter().map(|&b| self.fidelity(b)).sum();
+        let seams: f64 = (0..self.p.points.len() as u32).map(|q| self.seam(q)).sum();
+        (fidelity + seams) / self.dec.len() as f64
     }
 
     /// The block's target alphas, 0–255 (0 in the padding).
@@ -197,14 +217,9 @@ pub fn optimise_alpha(
     for (b, block) in blocks.iter().enumerate() {
         search.set(b, block);
     }
-    let total = |s: &Search| {
-        (0..footprint.len())
-            .map(|i| s.energy(footprint[i], i))
-            .sum::<f64>()
-    };
     let mut stats = SeamAwareStats {
         blocks: footprint.len(),
-        energy_regular: total(&search),
+        energy_regular: search.total(&footprint),
         ..SeamAwareStats::default()
     };
     let mut energy = stats.energy_regular;
@@ -213,7 +228,7 @@ pub fn optimise_alpha(
         for (s, &b) in footprint.iter().enumerate() {
             blocks[b] = search.improve(b, s, blocks[b]);
         }
-        let e = total(&search);
+        let e = search.total(&footprint);
         let fell = energy - e;
         energy = e;
         if fell <= 1e-9 * energy.max(1e-300) {

@@ -99,6 +99,20 @@ pub struct SeamAwareStats {
     pub energy_final: f64,
 }
 
+impl SeamAwareStats {
+    /// One debug line with the figures, for the encoding named `what`.
+    pub fn log(&self, what: &'static str) {
+        tracing::debug!(
+            what,
+            blocks = self.blocks,
+            sweeps = self.sweeps,
+            energy_regular = self.energy_regular,
+            energy_final = self.energy_final,
+            "seam-aware encoding"
+        );
+    }
+}
+
 /// The texel layout and the energy's fixed parts.
 pub struct Problem<'a> {
     pub width: usize,

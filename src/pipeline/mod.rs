@@ -505,6 +505,8 @@ struct EncodedLevel {
     /// BC3's alpha blocks (empty for BC1).
     alpha_regular: Vec<AlphaBlock>,
     alpha_shipped: Vec<AlphaBlock>,
+    /// For BC1 with one-bit alpha: the texels encoded transparent.
+    clear: Option<Vec<bool>>,
     encode_ms: u64,
     seam_aware_ms: u64,
 }
@@ -571,13 +573,7 @@ fn encode_level(
                 name: b.name.clone(),
                 source,
             })?;
-        tracing::debug!(
-            blocks = stats.blocks,
-            sweeps = stats.sweeps,
-            energy_regular = stats.energy_regular,
-            energy_final = stats.energy_final,
-            "seam-aware encoding"
-        );
+        stats.log("colour");
         if let (Some(a), Some(true)) = (&values, plan.map(|p| p.erase)) {
             let problem = AlphaProblem {
                 width: w,
@@ -586,14 +582,7 @@ fn encode_level(
                 inside: &level.classes.inside,
                 points: &points,
             };
-            let stats = optimise_alpha(&problem, &mut alpha_shipped, &sa_opts);
-            tracing::debug!(
-                blocks = stats.blocks,
-                sweeps = stats.sweeps,
-                energy_regular = stats.energy_regular,
-                energy_final = stats.energy_final,
-                "seam-aware alpha"
-            );
+            optimise_alpha(&problem, &mut alpha_shipped, &sa_opts).log("alpha");
         }
     }
     Ok(EncodedLevel {
@@ -601,6 +590,7 @@ fn encode_level(
         shipped,
         alpha_regular,
         alpha_shipped,
+        clear,
         encode_ms,
         seam_aware_ms: t.elapsed().as_millis() as u64,
     })
@@ -866,18 +856,15 @@ fn process_texture(
         regular: None,
         dds: None,
     });
-    // Under a transparent texel of a one-bit-alpha DDS no colour is shown:
-    // the colour figures take the erased texture's there.
-    let clear = alphas.as_ref().and_then(|(p, _, erased)| {
-        (p.format == AlphaFormat::Bc1a).then(|| alpha::transparent(erased, p.cutoff.unwrap_or(0.5)))
-    });
     let mut decoded = None;
     if opts.format == Format::Dds {
         let enc = encode_level(b, &level0, opts, plan.as_ref())?;
+        // Under a transparent texel of a one-bit-alpha DDS no colour is
+        // shown: the colour figures take the erased texture's there.
         let decode = |blocks: &[Block], d: Decoder| {
             let mut rgb = bc1::decode_image_with(blocks, tex.width, tex.height, d)
                 .map_err(|e| encode_err(e.to_string()))?;
-            if let Some(clear) = &clear {
+            if let Some(clear) = &enc.clear {
                 for (t, _) in clear.iter().enumerate().filter(|(_, c)| **c) {
                     rgb[t * 3..t * 3 + 3].copy_from_slice(&erased_rgb[t * 3..t * 3 + 3]);
                 }
