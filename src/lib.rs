@@ -4,11 +4,13 @@
 //! → [`seam`] (exact metric, erasure) → [`bc1`] (encode, seam-aware encode,
 //! write DDS) → [`pipeline`] (one job: model in, files and report out);
 //! [`budget`] decides from a model's plan whether a job may run at all;
-//! [`service`] runs the pipeline behind HTTP.
+//! [`service`] runs the pipeline behind HTTP; [`batch`] runs many models
+//! here, or through [`client`] on a server.
 
 pub mod batch;
 pub mod bc1;
 pub mod budget;
+pub mod client;
 pub mod heap;
 pub mod mips;
 pub mod model;

@@ -8,10 +8,12 @@ use std::process::ExitCode;
 use anyhow::Context;
 use clap::{Parser, Subcommand};
 
-use seamstress::batch::run::{run_model, BatchOptions, ModelFiles, RunError};
+use seamstress::batch::run::{run_model, BatchOptions, ModelFiles, RunError, Runner};
 use seamstress::batch::{self, BatchModel};
 use seamstress::bc1::Level;
 use seamstress::budget::{self, Limits};
+use seamstress::client::retry::RetryParams;
+use seamstress::client::{Remote, RemoteParams};
 use seamstress::model::LoadOptions;
 use seamstress::pipeline::{
     self, AlphaOption, Format, JobSettings, Method, NoSink, ProcessOptions, Resize, Target,
@@ -47,6 +49,9 @@ enum Command {
     /// Erase the seams of every colour texture of one model, or of every
     /// model of files, folders and glob patterns, and encode them to BC1.
     Process(ProcessArgs),
+    /// The same batch on a running server: uploads each model, follows its
+    /// job, downloads its files into the tree `process` writes.
+    Submit(SubmitArgs),
     /// Run the HTTP service: a durable job queue and a worker pool over the engine.
     Serve(Box<seamstress::service::ServeArgs>),
     /// One job of a server's worker, in a process of its own.
@@ -57,8 +62,10 @@ enum Command {
     },
 }
 
+/// Which models, where their outputs go, and how a batch runs: the same
+/// for `process` and `submit`.
 #[derive(clap::Args)]
-struct ProcessArgs {
+struct BatchArgs {
     /// .glb files, .gltf files with their files beside them, folders
     /// (every model below them) and glob patterns ('assets/**/*.glb').
     /// One model file writes into --out; anything else mirrors the inputs
@@ -68,7 +75,7 @@ struct ProcessArgs {
     /// Folder for the outputs (created if missing).
     #[arg(long)]
     out: PathBuf,
-    /// Models processed at once (a batch).
+    /// Models processed at once (a batch; for submit, jobs in flight).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..))]
     jobs: u16,
     /// Go on with the other models after one fails (a batch).
@@ -81,6 +88,30 @@ struct ProcessArgs {
     /// Also write the batch's summary as JSON into this file.
     #[arg(long, value_name = "FILE")]
     summary: Option<PathBuf>,
+}
+
+#[derive(clap::Args)]
+struct ProcessArgs {
+    #[command(flatten)]
+    batch: BatchArgs,
+    #[command(flatten)]
+    options: OptionArgs,
+    /// Refuse textures wider or taller than this, before decoding them.
+    #[arg(long, default_value_t = 16384)]
+    max_texture_size: u32,
+    /// Refuse (exit 2) a model whose estimated peak memory is above this
+    /// (512M, 4G, ...), before decoding it. Default: the memory this
+    /// process may use (the machine's, or less under `ulimit -v` or a
+    /// container's limit).
+    #[arg(long, value_name = "BYTES", value_parser = budget::parse_bytes)]
+    max_memory: Option<u64>,
+}
+
+/// The job options as flags: each becomes its field of [`ProcessOptions`]
+/// (the one definition, with the service's and the report's names) in
+/// [`OptionArgs::options`]; a test holds the defaults to the library's.
+#[derive(clap::Args)]
+struct OptionArgs {
     /// How far from the seams texels may change: local, or global (changes
     /// spread over the charts, for sides painted with a colour offset).
     #[arg(long, value_parser = word::<Mode>, default_value = "local")]
@@ -108,9 +139,6 @@ struct ProcessArgs {
     /// Write the DX10 header (BC1_UNORM, or BC1_UNORM_SRGB for colour textures).
     #[arg(long)]
     dx10: bool,
-    /// Refuse textures wider or taller than this, before decoding them.
-    #[arg(long, default_value_t = 16384)]
-    max_texture_size: u32,
     /// Also process occlusion and metallic-roughness textures.
     #[arg(long)]
     extra_maps: bool,
@@ -143,12 +171,42 @@ struct ProcessArgs {
     /// them, with close-ups of the worst.
     #[arg(long)]
     pictures: bool,
-    /// Refuse (exit 2) a model whose estimated peak memory is above this
-    /// (512M, 4G, ...), before decoding it. Default: the memory this
-    /// process may use (the machine's, or less under `ulimit -v` or a
-    /// container's limit).
-    #[arg(long, value_name = "BYTES", value_parser = budget::parse_bytes)]
-    max_memory: Option<u64>,
+}
+
+impl OptionArgs {
+    fn options(&self) -> ProcessOptions {
+        ProcessOptions {
+            mode: self.mode,
+            method: self.method,
+            format: self.format,
+            bc1_level: self.bc1_level,
+            seam_aware: !self.no_seam_aware,
+            seam_weight: self.seam_weight,
+            mips: self.mips,
+            dx10: self.dx10,
+            extra_maps: self.extra_maps,
+            seam_tolerance: self.seam_tolerance,
+            erase_all: self.erase_all,
+            decoder: self.decoder,
+            resize: self.resize,
+            alpha: self.alpha,
+            pictures: self.pictures,
+        }
+    }
+}
+
+#[derive(clap::Args)]
+struct SubmitArgs {
+    #[command(flatten)]
+    batch: BatchArgs,
+    #[command(flatten)]
+    options: OptionArgs,
+    /// The server: http://HOST:PORT.
+    #[arg(long, value_name = "URL")]
+    server: String,
+    /// The bearer token, if the server asks for one.
+    #[arg(long, env = "SEAMSTRESS_TOKEN", hide_env_values = true)]
+    token: Option<String>,
 }
 
 fn main() -> ExitCode {
@@ -156,13 +214,18 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     // A one-shot command stays quiet; a service logs every request and job.
     let default_level = match cli.command {
-        Command::Process(_) | Command::RunJob { .. } => "warn",
+        Command::Process(_) | Command::Submit(_) | Command::RunJob { .. } => "warn",
         Command::Serve(_) => "info",
     };
     let format = cli.log_format;
     init_logging(format, default_level);
     match cli.command {
         Command::Process(args) => match process(&args) {
+            Ok(()) => ExitCode::SUCCESS,
+            Err(Failure::BadInput(msg)) => fail(format, 2, &msg),
+            Err(Failure::Internal(e)) => fail(format, 1, &format!("{e:#}")),
+        },
+        Command::Submit(args) => match submit(&args) {
             Ok(()) => ExitCode::SUCCESS,
             Err(Failure::BadInput(msg)) => fail(format, 2, &msg),
             Err(Failure::Internal(e)) => fail(format, 1, &format!("{e:#}")),
@@ -222,47 +285,32 @@ impl From<anyhow::Error> for Failure {
     }
 }
 
-fn process(args: &ProcessArgs) -> Result<(), Failure> {
-    if !(args.seam_weight.is_finite() && args.seam_weight >= 0.0) {
-        return Err(Failure::BadInput(format!(
-            "--seam-weight must be a non-negative number, not {}",
-            args.seam_weight
-        )));
-    }
-    if !(args.seam_tolerance.is_finite() && args.seam_tolerance >= 0.0) {
-        return Err(Failure::BadInput(format!(
-            "--seam-tolerance must be a non-negative number of levels, not {}",
-            args.seam_tolerance
-        )));
-    }
-    // Before the work, so that an unusable --out fails at once.
-    if args.out.exists() && !args.out.is_dir() {
+/// The options, checked, and the models of the inputs, with `--out`
+/// checked before any work so that an unusable one fails at once.
+fn prepare(
+    batch: &BatchArgs,
+    flags: &OptionArgs,
+) -> Result<(ProcessOptions, Vec<BatchModel>), Failure> {
+    let options = flags.options();
+    options
+        .validate()
+        .map_err(|e| Failure::BadInput(format!("--{}", e.to_string().replace('_', "-"))))?;
+    if batch.out.exists() && !batch.out.is_dir() {
         return Err(Failure::BadInput(format!(
             "--out {}: exists and is not a folder",
-            args.out.display()
+            batch.out.display()
         )));
     }
-    let models = batch::discover(&args.inputs).map_err(|e| Failure::BadInput(e.to_string()))?;
+    let models = batch::discover(&batch.inputs).map_err(|e| Failure::BadInput(e.to_string()))?;
+    Ok((options, models))
+}
+
+fn process(args: &ProcessArgs) -> Result<(), Failure> {
+    let (options, models) = prepare(&args.batch, &args.options)?;
     let settings = JobSettings {
-        process: ProcessOptions {
-            mode: args.mode,
-            method: args.method,
-            format: args.format,
-            bc1_level: args.bc1_level,
-            seam_aware: !args.no_seam_aware,
-            seam_weight: args.seam_weight,
-            mips: args.mips,
-            dx10: args.dx10,
-            seam_tolerance: args.seam_tolerance,
-            erase_all: args.erase_all,
-            pictures: args.pictures,
-            decoder: args.decoder,
-            resize: args.resize,
-            alpha: args.alpha,
-        },
+        process: options,
         load: LoadOptions {
             max_texture_size: args.max_texture_size,
-            extra_maps: args.extra_maps,
             ..LoadOptions::default()
         },
         limits: Limits {
@@ -272,14 +320,26 @@ fn process(args: &ProcessArgs) -> Result<(), Failure> {
     match &models[..] {
         [one] if one.out.as_os_str().is_empty() => {
             let model = ModelFiles::read(&one.path)?;
-            let written = run_model(&model, &one.path, &args.out, &settings, &mut NoSink)?;
+            let written = run_model(&model, &one.path, &args.batch.out, &settings, &mut NoSink)?;
             std::io::stdout()
                 .write_all(&written.report)
                 .context("cannot write to standard output")?;
             Ok(())
         }
-        _ => process_batch(args, &models, &settings),
+        _ => run_batch(&args.batch, &models, &settings),
     }
+}
+
+fn submit(args: &SubmitArgs) -> Result<(), Failure> {
+    let (options, models) = prepare(&args.batch, &args.options)?;
+    let params = RemoteParams {
+        server: args.server.clone(),
+        token: args.token.clone(),
+        retry: RetryParams::default(),
+        poll: std::time::Duration::from_millis(250),
+    };
+    let remote = Remote::new(params, options)?;
+    run_batch(&args.batch, &models, &remote)
 }
 
 impl From<RunError> for Failure {
@@ -294,11 +354,7 @@ impl From<RunError> for Failure {
 /// A batch: a progress bar on a terminal (plain lines otherwise), the
 /// summary at the end; exit status 1 if a model failed inside, else 2 if
 /// one was bad input.
-fn process_batch(
-    args: &ProcessArgs,
-    models: &[BatchModel],
-    settings: &JobSettings,
-) -> Result<(), Failure> {
+fn run_batch(args: &BatchArgs, models: &[BatchModel], runner: &dyn Runner) -> Result<(), Failure> {
     let opts = BatchOptions {
         out: args.out.clone(),
         jobs: usize::from(args.jobs),
@@ -306,7 +362,7 @@ fn process_batch(
         force: args.force,
     };
     let progress = BatchProgress::new(models.len());
-    let summary = batch::run::run_batch(models, settings, &opts, &progress);
+    let summary = batch::run::run_batch(models, runner, &opts, &progress);
     progress.bar.finish_and_clear();
     eprint!("{}", summary.text());
     if let Some(path) = &args.summary {
@@ -386,5 +442,19 @@ impl batch::run::Observer for BatchProgress {
                 self.total, outcome.status, outcome.model, outcome.seconds
             );
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn flag_defaults_are_the_librarys() {
+        let cli = Cli::try_parse_from(["seamstress", "process", "m.glb", "--out", "o"]).unwrap();
+        let Command::Process(args) = cli.command else {
+            unreachable!("parsed as process")
+        };
+        assert_eq!(args.options.options(), ProcessOptions::default());
     }
 }

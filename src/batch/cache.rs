@@ -14,6 +14,7 @@ use sha2::{Digest, Sha256};
 
 use crate::model::rewrite::referenced_files;
 use crate::model::Resolver;
+use crate::pipeline::ProcessOptions;
 
 /// The stamp's file name in a model's output folder.
 pub const STAMP_NAME: &str = "seamstress.stamp.json";
@@ -26,9 +27,11 @@ pub struct Stamp {
     pub files: Vec<(String, u64)>,
 }
 
-/// The cache key of a model: `settings` is the job's settings in a form
-/// that changes whenever an option does.
-pub fn key(main: &[u8], files: &dyn Resolver, settings: &str) -> String {
+/// The cache key of a model under `options` (the limits a job runs under
+/// decide whether it runs, not what it writes: they are not part of it).
+/// `seamstress submit` sends it as the job's `Idempotency-Key`.
+pub fn key(main: &[u8], files: &dyn Resolver, options: &ProcessOptions) -> String {
+    let settings = serde_json::Value::Object(options.to_json()).to_string();
     let mut h = Sha256::new();
     let mut part = |bytes: &[u8]| {
         h.update((bytes.len() as u64).to_le_bytes());

@@ -14,7 +14,9 @@ use super::summary::{ModelOutcome, Summary};
 use crate::model::rewrite::referenced_files;
 use crate::model::DirResolver;
 use crate::pipeline::job::REPORT_NAME;
-use crate::pipeline::{self, JobError, JobInput, JobSettings, Progress, Sink, Stop};
+use crate::pipeline::{
+    self, JobError, JobInput, JobSettings, ProcessOptions, Progress, Sink, Stop,
+};
 
 /// Why a model produced no outputs.
 #[derive(Debug, thiserror::Error)]
@@ -93,28 +95,73 @@ pub fn run_model(
         JobError::BadInput(m) | JobError::TooLarge(m) => RunError::BadInput(m),
         e => RunError::Internal(format!("{}: processing failed: {e}", model.name)),
     })?;
-    let same_folder = match (out.canonicalize(), model.dir.canonicalize()) {
+    let files = output.files.into_iter().map(|f| (f.name, f.bytes));
+    write_outputs(&mut staging, model, input, files)
+}
+
+/// Writes a model's output files through `staging` into its folder. Into
+/// the model's own folder, the model and the files it refers to are never
+/// overwritten.
+pub(crate) fn write_outputs(
+    staging: &mut Staging,
+    model: &ModelFiles,
+    input: &Path,
+    outputs: impl Iterator<Item = (String, Vec<u8>)>,
+) -> Result<Written, RunError> {
+    let same_folder = match (staging.out.canonicalize(), model.dir.canonicalize()) {
         (Ok(a), Ok(b)) => a == b,
         _ => false,
     };
     let mut originals = referenced_files(&model.main).unwrap_or_default();
     originals.extend(input.file_name().map(|n| n.to_string_lossy().into_owned()));
     let mut files = Vec::new();
-    for f in &output.files {
-        if same_folder && originals.contains(&f.name) {
-            tracing::warn!(file = %f.name, "not written: --out is the model's folder and holds it");
+    let mut report = Vec::new();
+    for (name, bytes) in outputs {
+        if name == REPORT_NAME {
+            report.clone_from(&bytes);
+        }
+        if same_folder && originals.contains(&name) {
+            tracing::warn!(file = %name, "not written: --out is the model's folder and holds it");
             continue;
         }
-        staging.write(&f.name, &f.bytes)?;
-        files.push((f.name.clone(), f.bytes.len() as u64));
+        staging.write(&name, &bytes)?;
+        files.push((name, bytes.len() as u64));
     }
     staging.publish()?;
-    let report = output
-        .files
-        .iter()
-        .find(|f| f.name == REPORT_NAME)
-        .map_or_else(Vec::new, |f| f.bytes.clone());
     Ok(Written { report, files })
+}
+
+/// Where a batch's models run: here ([`JobSettings`]: the pipeline in this
+/// process) or on a server (`seamstress submit`'s client).
+pub trait Runner: Sync {
+    /// The options the outputs are made with (part of the cache key).
+    fn options(&self) -> &ProcessOptions;
+    /// Runs `model` (read from `input`) into `out`; `key` is its cache key.
+    fn run(
+        &self,
+        model: &ModelFiles,
+        input: &Path,
+        out: &Path,
+        key: &str,
+        sink: &mut dyn Sink,
+    ) -> Result<Written, RunError>;
+}
+
+impl Runner for JobSettings {
+    fn options(&self) -> &ProcessOptions {
+        &self.process
+    }
+
+    fn run(
+        &self,
+        model: &ModelFiles,
+        input: &Path,
+        out: &Path,
+        _key: &str,
+        sink: &mut dyn Sink,
+    ) -> Result<Written, RunError> {
+        run_model(model, input, out, self, sink)
+    }
 }
 
 /// What a batch's caller hears: calls come from the worker threads.
@@ -142,7 +189,7 @@ pub struct BatchOptions {
 /// Runs every model of `models` into its folder under `opts.out`.
 pub fn run_batch(
     models: &[BatchModel],
-    settings: &JobSettings,
+    runner: &dyn Runner,
     opts: &BatchOptions,
     observer: &dyn Observer,
 ) -> Summary {
@@ -151,7 +198,6 @@ pub fn run_batch(
     let stop = AtomicBool::new(false);
     let outcomes = Mutex::new(Vec::new());
     // The cache key covers everything that shapes the outputs.
-    let settings_key = format!("{:?}|{:?}", settings.process, settings.load);
     std::thread::scope(|s| {
         for _ in 0..opts.jobs.clamp(1, models.len().max(1)) {
             s.spawn(|| loop {
@@ -161,7 +207,7 @@ pub fn run_batch(
                 let i = next.fetch_add(1, Ordering::Relaxed);
                 let Some(m) = models.get(i) else { break };
                 observer.started(i, m);
-                let outcome = one(m, i, settings, &settings_key, opts, observer);
+                let outcome = one(m, i, runner, opts, observer);
                 let failed = matches!(outcome.status, "bad_input" | "failed");
                 if failed && !opts.keep_going {
                     stop.store(true, Ordering::Relaxed);
@@ -187,8 +233,7 @@ pub fn run_batch(
 fn one(
     m: &BatchModel,
     index: usize,
-    settings: &JobSettings,
-    settings_key: &str,
+    runner: &dyn Runner,
     opts: &BatchOptions,
     observer: &dyn Observer,
 ) -> ModelOutcome {
@@ -212,7 +257,7 @@ fn one(
         Ok(f) => f,
         Err(e) => return failed(e),
     };
-    let key = cache::key(&files.main, &files.files, settings_key);
+    let key = cache::key(&files.main, &files.files, runner.options());
     if !opts.force && Stamp::fresh(&out, &key) {
         let report = std::fs::read(out.join(REPORT_NAME)).unwrap_or_default();
         return outcome("cached", None).with_report(&report);
@@ -221,7 +266,7 @@ fn one(
         observer.progress(index, m, at);
         Ok(())
     };
-    match run_model(&files, &m.path, &out, settings, &mut sink) {
+    match runner.run(&files, &m.path, &out, &key, &mut sink) {
         Ok(w) => {
             let stamp = Stamp {
                 key,
@@ -248,14 +293,14 @@ fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
 /// A run's private folder inside its output folder (removed when dropped):
 /// files are written and synced there, then renamed into place one by one,
 /// so a reader never sees half a file and concurrent runs never clash.
-struct Staging {
+pub(crate) struct Staging {
     out: PathBuf,
     dir: PathBuf,
     names: Vec<String>,
 }
 
 impl Staging {
-    fn create(out: &Path) -> std::io::Result<Staging> {
+    pub(crate) fn create(out: &Path) -> std::io::Result<Staging> {
         std::fs::create_dir_all(out)?;
         let nanos = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)

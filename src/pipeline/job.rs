@@ -29,6 +29,7 @@ pub struct JobInput<'a> {
 #[derive(Clone, Debug)]
 pub struct JobSettings {
     pub process: ProcessOptions,
+    /// The loader's limits (its `extra_maps` is the job option's).
     pub load: LoadOptions,
     pub limits: Limits,
 }
@@ -82,7 +83,12 @@ impl From<LoadError> for JobError {
 /// job to its budget: what [`run_job`] does before any large allocation,
 /// and what a service checks an upload with before queueing it.
 pub fn admit(input: &JobInput<'_>, settings: &JobSettings) -> Result<Plan, JobError> {
-    let plan = model::plan_from_memory(input.name, input.main, input.files, &settings.load)?;
+    // Which maps load is a job option; the limits are the caller's.
+    let load = LoadOptions {
+        extra_maps: settings.process.extra_maps,
+        ..settings.load.clone()
+    };
+    let plan = model::plan_from_memory(input.name, input.main, input.files, &load)?;
     let need = budget::need(&plan, &settings.process);
     budget::check(&need, &settings.limits)
         .map_err(|over| JobError::TooLarge(format!("{}: {over}", plan.file())))?;

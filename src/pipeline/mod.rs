@@ -10,18 +10,23 @@
 
 pub mod alpha;
 pub mod job;
+pub mod options;
 mod progress;
 
 pub use alpha::{AlphaFormat, AlphaOption, AlphaReport};
 use alpha::{AlphaMetrics, AlphaPlan};
 pub use job::{admit, run_job, JobError, JobInput, JobOutput, JobSettings, JobTimings};
+pub use options::{
+    Format, Method, OptionPatch, OptionsError, ProcessOptions, DEFAULT_SEAM_TOLERANCE,
+    DEFAULT_SEAM_WEIGHT,
+};
 pub use progress::{NoSink, Progress, Sink, Stop};
 
 use std::collections::BTreeMap;
 use std::time::Instant;
 
 use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 
 use crate::bc1::alpha::{decode_alpha_image, encode_alpha_image, AlphaBlock};
 use crate::bc1::alpha_seam_aware::{optimise_alpha, AlphaProblem};
@@ -30,7 +35,7 @@ use crate::bc1::punch::punch_through;
 use crate::bc1::seam_aware::{optimise, Problem, SeamAwareOptions};
 use crate::bc1::Decoder;
 pub use crate::bc1::Target;
-use crate::bc1::{self, Block, Level};
+use crate::bc1::{self, Block};
 use crate::mips;
 use crate::model::{find_seams, AlphaUse, Model, SeamSet, Skipped, Texture, TextureBinding};
 use crate::picture::{seams_png, SeamPicture};
@@ -44,79 +49,6 @@ use crate::seam::padding::pad_left_seams;
 use crate::seam::quadrature::QuadPoint;
 use crate::seam::system::SolveError;
 use crate::seam::{colour_channels, psnr, SeamMetric, TexelClasses, TexelGrid};
-
-/// How seams are removed.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Method {
-    /// Both sides agree along the whole seam, integrated exactly
-    // (SPEC §4).
-    #[default]
-    Erase,
-    /// Both sides agree at points sampled along the seams
-    // (the seeds' baseline, a simpler least-squares).
-    Masking,
-}
-
-/// What `process` writes for each texture besides the erased PNG.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Format {
-    /// A BC1 DDS file and the erased PNG.
-    #[default]
-    Dds,
-    /// The erased PNG only.
-    Png,
-}
-
-pub use crate::bc1::seam_aware::DEFAULT_ALPHA as DEFAULT_SEAM_WEIGHT;
-pub use crate::seam::classify::DEFAULT_TOLERANCE as DEFAULT_SEAM_TOLERANCE;
-
-#[derive(Clone, Copy, Debug)]
-pub struct ProcessOptions {
-    pub mode: Mode,
-    pub method: Method,
-    pub format: Format,
-    pub bc1_level: Level,
-    pub seam_aware: bool,
-    pub seam_weight: f64,
-    pub mips: bool,
-    pub dx10: bool,
-    /// Seams whose sides, as their own charts paint them, differ by more
-    /// than this (8-bit levels, RMS along the edge) are left as painted.
-    pub seam_tolerance: f64,
-    /// Close every seam, however far apart its sides are painted.
-    pub erase_all: bool,
-    /// Draw `<name>.seams.png` for each texture.
-    pub pictures: bool,
-    /// The GPU decoders the seam-aware encoding keeps the seams closed under.
-    pub decoder: Target,
-    /// What happens to a texture whose sides are not multiples of 4.
-    pub resize: Resize,
-    /// What the DDS keeps of alpha.
-    pub alpha: AlphaOption,
-}
-
-impl Default for ProcessOptions {
-    fn default() -> Self {
-        ProcessOptions {
-            mode: Mode::Local,
-            method: Method::Erase,
-            format: Format::Dds,
-            bc1_level: Level::Default,
-            seam_aware: true,
-            seam_weight: DEFAULT_SEAM_WEIGHT,
-            mips: false,
-            dx10: false,
-            seam_tolerance: DEFAULT_SEAM_TOLERANCE,
-            erase_all: false,
-            pictures: false,
-            decoder: Target::Robust,
-            resize: Resize::Mul4,
-            alpha: AlphaOption::Auto,
-        }
-    }
-}
 
 #[derive(Debug, thiserror::Error)]
 pub enum PipelineError {
@@ -243,6 +175,8 @@ pub struct TextureReport {
 #[derive(Clone, Debug, Serialize)]
 pub struct Report {
     pub input: String,
+    /// Every option the job ran with.
+    pub options: ProcessOptions,
     pub textures: Vec<TextureReport>,
     pub skipped: Vec<Skipped>,
     /// What an unattended run should not miss: a UV chart repainted below
@@ -306,6 +240,7 @@ pub fn run_reporting(
     }
     let report = Report {
         input: input_name.to_string(),
+        options: *opts,
         textures,
         skipped: model.skipped.clone(),
         warnings,

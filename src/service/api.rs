@@ -22,11 +22,10 @@ use super::data_dir;
 use super::engine;
 use super::error::{self, ApiError};
 use super::job::{self, is_job_id, now_ms, random_id, InputInfo, Job, JobState, Progress};
-use super::options::{JobOptions, QUERY_OPTIONS};
 use super::store::{keys, StoreError, Submitted};
 use super::upload::{base_name, safe_name, Bundle};
 use crate::budget::Limits;
-use crate::pipeline::JobError;
+use crate::pipeline::{JobError, OptionPatch, ProcessOptions};
 
 pub const OPENAPI: &str = include_str!("../../openapi.yaml");
 
@@ -288,7 +287,7 @@ async fn read_upload(
     app: &Shared,
     req: Request,
     name: Option<String>,
-) -> Result<(Bundle, JobOptions), ApiError> {
+) -> Result<(Bundle, OptionPatch), ApiError> {
     let limit = app.cfg.max_body;
     let declared = req
         .headers()
@@ -314,7 +313,7 @@ async fn read_upload(
                     main,
                     files: BTreeMap::new(),
                 },
-                JobOptions::default(),
+                OptionPatch::default(),
             ))
         }
         "multipart/form-data" => read_multipart(app, req, name).await,
@@ -343,7 +342,7 @@ async fn read_multipart(
     app: &Shared,
     req: Request,
     name: Option<String>,
-) -> Result<(Bundle, JobOptions), ApiError> {
+) -> Result<(Bundle, OptionPatch), ApiError> {
     let limit = app.cfg.max_body;
     let multipart_err = |e: axum::extract::multipart::MultipartError| {
         if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
@@ -357,14 +356,14 @@ async fn read_multipart(
         .map_err(|e| ApiError::bad_request(e.body_text()))?;
     let mut main: Option<(String, Vec<u8>)> = None;
     let mut files = BTreeMap::new();
-    let mut options = JobOptions::default();
+    let mut options = OptionPatch::default();
     while let Some(field) = form.next_field().await.map_err(multipart_err)? {
         let field_name = field.name().unwrap_or("").to_string();
         let file_name = field.file_name().map(str::to_string);
         match file_name {
             _ if field_name == "options" => {
                 let text = field.bytes().await.map_err(multipart_err)?;
-                options = serde_json::from_slice(&text)
+                options = OptionPatch::from_json(&text)
                     .map_err(|e| ApiError::invalid_options(format!("the options part: {e}")))?;
             }
             None => {
@@ -411,8 +410,8 @@ async fn read_multipart(
 }
 
 /// Splits the query into options and the model's name.
-fn parse_query(query: Option<&str>) -> Result<(JobOptions, Option<String>), ApiError> {
-    let mut options = JobOptions::default();
+fn parse_query(query: Option<&str>) -> Result<(OptionPatch, Option<String>), ApiError> {
+    let mut options = OptionPatch::default();
     let mut name = None;
     for pair in query.unwrap_or("").split('&').filter(|p| !p.is_empty()) {
         let (k, v) = pair.split_once('=').unwrap_or((pair, ""));
@@ -431,10 +430,10 @@ fn parse_query(query: Option<&str>) -> Result<(JobOptions, Option<String>), ApiE
                     ApiError::bad_request("name must be a file name ending in .glb or .gltf")
                 })?;
             name = Some(safe);
-        } else if QUERY_OPTIONS.contains(&k.as_str()) {
+        } else if ProcessOptions::is_option(&k) {
             options
                 .set_from_query(&k, &v)
-                .map_err(ApiError::invalid_options)?;
+                .map_err(|e| ApiError::invalid_options(e.to_string()))?;
         } else {
             return Err(ApiError::bad_request(format!(
                 "unknown query parameter {k:?}"
@@ -468,8 +467,8 @@ async fn submit(
         .fetch_add(bundle.total_bytes(), Ordering::Relaxed);
     let options = query_options
         .overridden_by(part_options)
-        .resolve()
-        .map_err(ApiError::invalid_options)?;
+        .resolve(&ProcessOptions::service_default())
+        .map_err(|e| ApiError::invalid_options(e.to_string()))?;
     let id = random_id().map_err(|e| ApiError::internal(e.to_string()))?;
     let now = now_ms();
     let mut job = Job {
@@ -933,7 +932,7 @@ mod tests {
     fn query_options_and_name() {
         let (o, n) = parse_query(Some("mode=global&mips=1&name=Box%20A.glb")).unwrap();
         assert_eq!(n.as_deref(), Some("Box A.glb"));
-        assert!(o.mips.unwrap());
+        assert!(o.resolve(&ProcessOptions::default()).unwrap().mips);
         assert!(parse_query(Some("name=../x.glb")).is_err());
         assert!(parse_query(Some("name=x.png")).is_err());
         assert!(parse_query(Some("colour=red")).is_err());

@@ -5,10 +5,9 @@ use serde_json::value::RawValue;
 
 use crate::budget::Limits;
 use crate::model::LoadOptions;
-use crate::pipeline::{self, JobError, JobInput, JobSettings, Progress};
+use crate::pipeline::{self, JobError, JobInput, JobSettings, ProcessOptions, Progress};
 
 use super::job::StageTimings;
-use super::options::{process_options, ResolvedOptions};
 use super::upload::Bundle;
 
 pub use crate::pipeline::Stop;
@@ -38,19 +37,14 @@ pub struct Produced {
     pub warnings: Vec<String>,
 }
 
-pub fn load_options(opts: &ResolvedOptions, max_texture_size: u32) -> LoadOptions {
-    LoadOptions {
-        max_texture_size,
-        extra_maps: opts.extra_maps,
-        ..LoadOptions::default()
-    }
-}
-
 /// What a job over `bundle` is told.
-fn settings(opts: &ResolvedOptions, max_texture_size: u32, limits: &Limits) -> JobSettings {
+fn settings(opts: &ProcessOptions, max_texture_size: u32, limits: &Limits) -> JobSettings {
     JobSettings {
-        process: process_options(opts),
-        load: load_options(opts, max_texture_size),
+        process: *opts,
+        load: LoadOptions {
+            max_texture_size,
+            ..LoadOptions::default()
+        },
         limits: *limits,
     }
 }
@@ -68,7 +62,7 @@ fn input(bundle: &Bundle) -> JobInput<'_> {
 /// header against the size limit), and holds the job to its budget.
 pub fn validate(
     bundle: &Bundle,
-    opts: &ResolvedOptions,
+    opts: &ProcessOptions,
     max_texture_size: u32,
     limits: &Limits,
 ) -> Result<(), JobError> {
@@ -80,7 +74,7 @@ pub fn validate(
 /// done; an `Err` from it stops the job there.
 pub fn run(
     bundle: &Bundle,
-    opts: &ResolvedOptions,
+    opts: &ProcessOptions,
     max_texture_size: u32,
     limits: &Limits,
     checkpoint: &mut dyn FnMut(&str, f64) -> Result<(), Stop>,

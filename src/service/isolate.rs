@@ -25,8 +25,8 @@ use crate::budget::Limits;
 
 use super::engine::{self, EngineError, Produced, Stop};
 use super::job::StageTimings;
-use super::options::ResolvedOptions;
 use super::upload::Bundle;
+use crate::pipeline::ProcessOptions;
 
 /// How often a waiting worker looks for a cancel or the time limit.
 const POLL: Duration = Duration::from_millis(50);
@@ -69,7 +69,7 @@ enum FailureKind {
 /// What the child is given besides the upload.
 #[derive(Debug, Serialize, Deserialize)]
 struct Task {
-    options: ResolvedOptions,
+    options: ProcessOptions,
     max_texture_size: u32,
     max_memory: u64,
 }
@@ -92,7 +92,7 @@ pub fn run(
     iso: &Isolation,
     tag: &str,
     bundle: &[u8],
-    options: &ResolvedOptions,
+    options: &ProcessOptions,
     max_texture_size: u32,
     limits: &Limits,
     checkpoint: &mut dyn FnMut(&str, f64) -> Result<(), Stop>,
@@ -111,7 +111,7 @@ pub fn run(
     std::fs::create_dir_all(dir.join("out")).map_err(|e| failed("create", e))?;
     let _cleanup = RemoveOnDrop(dir.clone());
     let task = Task {
-        options: options.clone(),
+        options: *options,
         max_texture_size,
         max_memory: limits.max_memory,
     };

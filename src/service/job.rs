@@ -3,7 +3,7 @@
 use serde::{Deserialize, Serialize};
 use serde_json::value::RawValue;
 
-use super::options::ResolvedOptions;
+use crate::pipeline::ProcessOptions;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -122,7 +122,7 @@ pub struct Job {
     /// SHA-256 over owner, options and upload: equal keys give equal results.
     pub input_key: String,
     pub idempotency_key: Option<String>,
-    pub options: ResolvedOptions,
+    pub options: ProcessOptions,
     pub created_ms: u64,
     pub started_ms: Option<u64>,
     pub finished_ms: Option<u64>,
@@ -205,7 +205,7 @@ pub struct View<'a> {
     started_at: Option<String>,
     finished_at: Option<String>,
     input: &'a InputInfo,
-    options: &'a ResolvedOptions,
+    options: &'a ProcessOptions,
     progress: &'a Progress,
     timings_ms: &'a StageTimings,
     #[serde(skip_serializing_if = "Option::is_none")]

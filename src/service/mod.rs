@@ -18,7 +18,6 @@ pub mod files;
 mod isolate;
 pub mod job;
 mod metrics;
-pub mod options;
 mod server;
 pub mod sqlite;
 pub mod store;

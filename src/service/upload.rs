@@ -4,7 +4,7 @@ use std::collections::BTreeMap;
 
 use sha2::{Digest, Sha256};
 
-use super::options::ResolvedOptions;
+use crate::pipeline::ProcessOptions;
 
 /// A `.glb` or `.gltf` with the files beside it, keyed by the relative
 /// paths its URIs use.
@@ -68,7 +68,7 @@ impl Bundle {
 
     /// The result-cache key: equal owner, options and upload give equal
     /// outputs, so a second job can reuse the first one's files.
-    pub fn key(&self, owner: &str, options: &ResolvedOptions) -> String {
+    pub fn key(&self, owner: &str, options: &ProcessOptions) -> String {
         let mut h = Sha256::new();
         h.update(b"seamstress-job-1\0");
         h.update((owner.len() as u64).to_le_bytes());

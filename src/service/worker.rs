@@ -219,7 +219,7 @@ fn execute(app: &Shared, mut job: Job, flag: &AtomicU8) -> Result<JobState, Stor
             started,
         );
     };
-    let options = job.options.clone();
+    let options = job.options;
     let limits = Limits {
         max_memory: app.cfg.max_memory,
     };
