@@ -7,6 +7,9 @@ use std::process::{Command, Output};
 
 use serde_json::Value;
 
+mod common;
+use common::{farm_folder, report_without_timings};
+
 fn shared() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/assets")
 }
@@ -16,19 +19,6 @@ fn scratch(tag: &str) -> PathBuf {
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     dir
-}
-
-fn copy_tree(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for e in std::fs::read_dir(from).unwrap() {
-        let p = e.unwrap().path();
-        let dest = to.join(p.file_name().unwrap());
-        if p.is_dir() {
-            copy_tree(&p, &dest);
-        } else {
-            std::fs::copy(&p, &dest).unwrap();
-        }
-    }
 }
 
 fn process(args: &[&Path], extra: &[&str]) -> Output {
@@ -54,36 +44,6 @@ fn statuses(s: &Value) -> Vec<(String, String)> {
             (model, o["status"].as_str().unwrap().to_string())
         })
         .collect()
-}
-
-/// Every shared model but the negative ones, and one of those: a GLB whose
-/// mesh needs Draco.
-fn farm_folder(dir: &Path) -> (PathBuf, usize) {
-    let input = dir.join("in");
-    for e in std::fs::read_dir(shared()).unwrap() {
-        let p = e.unwrap().path();
-        if p.is_dir() && p.file_name().unwrap() != "negative" {
-            copy_tree(&p, &input.join(p.file_name().unwrap()));
-        }
-    }
-    std::fs::copy(
-        shared().join("negative/BoxTextured_draco.glb"),
-        input.join("draco.glb"),
-    )
-    .unwrap();
-    let mut models = 0;
-    let mut dirs = vec![input.clone()];
-    while let Some(d) = dirs.pop() {
-        for e in std::fs::read_dir(&d).unwrap() {
-            let p = e.unwrap().path();
-            if p.is_dir() {
-                dirs.push(p);
-            } else if p.extension().is_some_and(|x| x == "glb" || x == "gltf") {
-                models += 1;
-            }
-        }
-    }
-    (input, models)
 }
 
 /// The farm folder once more, kept going past its bad model: the summary.
@@ -162,15 +122,10 @@ fn a_folder_of_every_shared_model_with_a_bad_one_then_from_the_cache() {
         let name = p.file_name().unwrap().to_str().unwrap().to_string();
         let ours = std::fs::read(duck.join(&name)).unwrap();
         if name == "report.json" {
-            let strip = |b: &[u8]| {
-                let mut v: Value = serde_json::from_slice(b).unwrap();
-                for t in v["textures"].as_array_mut().unwrap() {
-                    t.as_object_mut().unwrap().remove("timings_ms");
-                }
-                v.as_object_mut().unwrap().remove("input");
-                v
-            };
-            assert_eq!(strip(&ours), strip(&std::fs::read(&p).unwrap()));
+            assert_eq!(
+                report_without_timings(&ours),
+                report_without_timings(&std::fs::read(&p).unwrap())
+            );
         } else {
             assert_eq!(ours, std::fs::read(&p).unwrap(), "{name}");
         }

@@ -302,6 +302,7 @@ pub(crate) struct Staging {
 impl Staging {
     pub(crate) fn create(out: &Path) -> std::io::Result<Staging> {
         std::fs::create_dir_all(out)?;
+        remove_abandoned(out);
         let nanos = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .map_or(0, |d| d.subsec_nanos());
@@ -347,6 +348,31 @@ impl Staging {
         }
         Ok(())
     }
+}
+
+/// Removes the staging folders in `out` of runs whose process is gone (a
+/// batch killed mid-write leaves its folder behind; a live run's is kept).
+fn remove_abandoned(out: &Path) {
+    let Ok(entries) = std::fs::read_dir(out) else {
+        return;
+    };
+    for e in entries.flatten() {
+        let name = e.file_name();
+        let pid = name
+            .to_str()
+            .and_then(|n| n.strip_prefix(".seamstress-"))
+            .and_then(|rest| rest.split('-').next())
+            .and_then(|pid| pid.parse::<libc::pid_t>().ok());
+        if pid.is_some_and(|pid| !process_alive(pid)) {
+            let _ = std::fs::remove_dir_all(e.path());
+        }
+    }
+}
+
+fn process_alive(pid: libc::pid_t) -> bool {
+    // SAFETY: signal 0 sends nothing; it only asks whether `pid` exists.
+    let r = unsafe { libc::kill(pid, 0) };
+    r == 0 || std::io::Error::last_os_error().raw_os_error() != Some(libc::ESRCH)
 }
 
 impl Drop for Staging {

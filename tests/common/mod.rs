@@ -187,3 +187,66 @@ pub fn process_report(model: &Path, out: &Path, extra: &[&str]) -> Value {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap()
 }
+
+/// The shared assets folder.
+pub fn shared_assets() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/assets")
+}
+
+pub fn copy_tree(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let p = e.unwrap().path();
+        let dest = to.join(p.file_name().unwrap());
+        if p.is_dir() {
+            copy_tree(&p, &dest);
+        } else {
+            std::fs::copy(&p, &dest).unwrap();
+        }
+    }
+}
+
+/// Every shared model but the negative ones, and one of those: a GLB whose
+/// mesh needs Draco.
+pub fn farm_folder(dir: &Path) -> (PathBuf, usize) {
+    let input = dir.join("in");
+    for e in std::fs::read_dir(shared_assets()).unwrap() {
+        let p = e.unwrap().path();
+        if p.is_dir() && p.file_name().unwrap() != "negative" {
+            copy_tree(&p, &input.join(p.file_name().unwrap()));
+        }
+    }
+    std::fs::copy(
+        shared_assets().join("negative/BoxTextured_draco.glb"),
+        input.join("draco.glb"),
+    )
+    .unwrap();
+    let mut models = 0;
+    let mut dirs = vec![input.clone()];
+    while let Some(d) = dirs.pop() {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                dirs.push(p);
+            } else if p.extension().is_some_and(|x| x == "glb" || x == "gltf") {
+                models += 1;
+            }
+        }
+    }
+    (input, models)
+}
+
+/// A report without what differs from run to run (the time each stage
+/// took) or with the caller (the input's name).
+pub fn report_without_timings(bytes: &[u8]) -> Value {
+    let mut v: Value = serde_json::from_slice(bytes).expect("a JSON report");
+    for t in v["textures"].as_array_mut().into_iter().flatten() {
+        if let Some(t) = t.as_object_mut() {
+            t.remove("timings_ms");
+        }
+    }
+    if let Some(v) = v.as_object_mut() {
+        v.remove("input");
+    }
+    v
+}
