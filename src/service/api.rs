@@ -18,6 +18,7 @@ use sha2::{Digest, Sha256};
 use tracing::Instrument;
 
 use super::app::{blocking, Shared, CANCELED};
+use super::callback;
 use super::data_dir;
 use super::engine;
 use super::error::{self, ApiError};
@@ -287,7 +288,7 @@ async fn read_upload(
     app: &Shared,
     req: Request,
     name: Option<String>,
-) -> Result<(Bundle, OptionPatch), ApiError> {
+) -> Result<(Bundle, OptionPatch, Option<String>), ApiError> {
     let limit = app.cfg.max_body;
     let declared = req
         .headers()
@@ -314,6 +315,7 @@ async fn read_upload(
                     files: BTreeMap::new(),
                 },
                 OptionPatch::default(),
+                None,
             ))
         }
         "multipart/form-data" => read_multipart(app, req, name).await,
@@ -342,7 +344,7 @@ async fn read_multipart(
     app: &Shared,
     req: Request,
     name: Option<String>,
-) -> Result<(Bundle, OptionPatch), ApiError> {
+) -> Result<(Bundle, OptionPatch, Option<String>), ApiError> {
     let limit = app.cfg.max_body;
     let multipart_err = |e: axum::extract::multipart::MultipartError| {
         if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
@@ -357,6 +359,7 @@ async fn read_multipart(
     let mut main: Option<(String, Vec<u8>)> = None;
     let mut files = BTreeMap::new();
     let mut options = OptionPatch::default();
+    let mut callback = None;
     while let Some(field) = form.next_field().await.map_err(multipart_err)? {
         let field_name = field.name().unwrap_or("").to_string();
         let file_name = field.file_name().map(str::to_string);
@@ -366,9 +369,12 @@ async fn read_multipart(
                 options = OptionPatch::from_json(&text)
                     .map_err(|e| ApiError::invalid_options(format!("the options part: {e}")))?;
             }
+            _ if field_name == "callback" => {
+                callback = Some(field.text().await.map_err(multipart_err)?);
+            }
             None => {
                 return Err(ApiError::bad_request(format!(
-                    "form field {field_name:?} is neither a file nor \"options\""
+                    "form field {field_name:?} is neither a file nor \"options\" or \"callback\""
                 )))
             }
             Some(file_name) => {
@@ -406,13 +412,41 @@ async fn read_multipart(
             files,
         },
         options,
+        callback,
     ))
 }
 
-/// Splits the query into options and the model's name.
-fn parse_query(query: Option<&str>) -> Result<(OptionPatch, Option<String>), ApiError> {
+/// A job's callback, if its URL may be called and there is a secret to
+/// sign it with.
+fn callback_for(app: &Shared, owner: &str, url: &str) -> Result<job::Callback, ApiError> {
+    let url = callback::check_url(&app.cfg, url)
+        .map_err(|m| ApiError::new(StatusCode::BAD_REQUEST, "invalid_callback", m))?;
+    if callback::key_for(&app.cfg, owner).is_none() {
+        return Err(ApiError::new(
+            StatusCode::BAD_REQUEST,
+            "invalid_callback",
+            "this server has no secret to sign callbacks with (--callback-secret)",
+        ));
+    }
+    Ok(job::Callback {
+        url,
+        ..job::Callback::default()
+    })
+}
+
+/// What a request's query holds besides options.
+#[derive(Debug, Default)]
+struct QueryExtras {
+    /// The model's file name for a raw upload.
+    name: Option<String>,
+    /// Where to post the finished job.
+    callback: Option<String>,
+}
+
+/// Splits the query into options, the model's name and the callback.
+fn parse_query(query: Option<&str>) -> Result<(OptionPatch, QueryExtras), ApiError> {
     let mut options = OptionPatch::default();
-    let mut name = None;
+    let mut extras = QueryExtras::default();
     for pair in query.unwrap_or("").split('&').filter(|p| !p.is_empty()) {
         let (k, v) = pair.split_once('=').unwrap_or((pair, ""));
         let decode = |s: &str| {
@@ -429,7 +463,9 @@ fn parse_query(query: Option<&str>) -> Result<(OptionPatch, Option<String>), Api
                 .ok_or_else(|| {
                     ApiError::bad_request("name must be a file name ending in .glb or .gltf")
                 })?;
-            name = Some(safe);
+            extras.name = Some(safe);
+        } else if k == "callback" {
+            extras.callback = Some(v);
         } else if ProcessOptions::is_option(&k) {
             options
                 .set_from_query(&k, &v)
@@ -440,7 +476,7 @@ fn parse_query(query: Option<&str>) -> Result<(OptionPatch, Option<String>), Api
             )));
         }
     }
-    Ok((options, name))
+    Ok((options, extras))
 }
 
 async fn submit(
@@ -457,11 +493,15 @@ async fn submit(
             5,
         ));
     }
-    let (query_options, name) = parse_query(query.as_deref())?;
+    let (query_options, extras) = parse_query(query.as_deref())?;
     let idem = idempotency_key(req.headers())?;
     let wait = prefer_wait(&app, req.headers());
 
-    let (bundle, part_options) = read_upload(&app, req, name).await?;
+    let (bundle, part_options, part_callback) = read_upload(&app, req, extras.name).await?;
+    let callback = match part_callback.or(extras.callback) {
+        Some(url) => Some(callback_for(&app, &owner, &url)?),
+        None => None,
+    };
     app.metrics
         .bytes_in
         .fetch_add(bundle.total_bytes(), Ordering::Relaxed);
@@ -496,6 +536,7 @@ async fn submit(
         cached_from: None,
         attempts: 0,
         warnings: Vec::new(),
+        callback,
     };
 
     let queue_size = app.cfg.queue_size;
@@ -931,13 +972,13 @@ mod tests {
     #[test]
     fn query_options_and_name() {
         let (o, n) = parse_query(Some("mode=global&mips=1&name=Box%20A.glb")).unwrap();
-        assert_eq!(n.as_deref(), Some("Box A.glb"));
+        assert_eq!(n.name.as_deref(), Some("Box A.glb"));
         assert!(o.resolve(&ProcessOptions::default()).unwrap().mips);
         assert!(parse_query(Some("name=../x.glb")).is_err());
         assert!(parse_query(Some("name=x.png")).is_err());
         assert!(parse_query(Some("colour=red")).is_err());
         assert!(parse_query(Some("mode=sideways")).is_err());
-        assert!(parse_query(None).unwrap().1.is_none());
+        assert!(parse_query(None).unwrap().1.name.is_none());
     }
 
     #[test]

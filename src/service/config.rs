@@ -73,6 +73,20 @@ pub struct ServeArgs {
     /// dropped. Without it such a server refuses to start.
     #[arg(long)]
     pub rebuild_store: bool,
+    /// A host (HOST or HOST:PORT) that job callbacks may be sent to; repeat
+    /// for more (environment: comma-separated). Without any, callbacks are
+    /// refused, so that a job cannot make the server call into a private
+    /// network.
+    #[arg(
+        long = "callback-allow",
+        env = "SEAMSTRESS_CALLBACK_ALLOW",
+        value_delimiter = ','
+    )]
+    pub callback_allow: Vec<String>,
+    /// The secret that signs callbacks of a server without tokens (with
+    /// tokens, each token's own secret signs its jobs' callbacks).
+    #[arg(long, env = "SEAMSTRESS_CALLBACK_SECRET", hide_env_values = true)]
+    pub callback_secret: Option<String>,
 }
 
 /// The configuration file: the same options as [`ServeArgs`].
@@ -94,6 +108,8 @@ struct FileConfig {
     max_wait: Option<Quantity>,
     tokens: Option<Vec<String>>,
     insecure_open: Option<bool>,
+    callback_allow: Option<Vec<String>>,
+    callback_secret: Option<String>,
 }
 
 /// A duration or size written as a bare number or with a unit.
@@ -160,6 +176,10 @@ pub struct Config {
     pub insecure_open: bool,
     /// Start afresh over a damaged job store (`--rebuild-store`).
     pub rebuild_store: bool,
+    /// Hosts (`HOST` or `HOST:PORT`, lower case) callbacks may reach.
+    pub callback_allow: Vec<String>,
+    /// SHA-256 of the secret signing an open server's callbacks.
+    pub callback_key: Option<[u8; 32]>,
 }
 
 impl Default for Config {
@@ -182,6 +202,8 @@ impl Default for Config {
             tokens: Vec::new(),
             insecure_open: false,
             rebuild_store: false,
+            callback_allow: Vec::new(),
+            callback_key: None,
         }
     }
 }
@@ -258,6 +280,20 @@ impl Config {
             tokens: parse_tokens(&token_specs)?,
             insecure_open: args.insecure_open || file.insecure_open.unwrap_or(false),
             rebuild_store: args.rebuild_store,
+            callback_allow: if args.callback_allow.is_empty() {
+                file.callback_allow.clone().unwrap_or_default()
+            } else {
+                args.callback_allow.clone()
+            }
+            .iter()
+            .map(|h| h.trim().to_ascii_lowercase())
+            .filter(|h| !h.is_empty())
+            .collect(),
+            callback_key: args
+                .callback_secret
+                .clone()
+                .or(file.callback_secret.clone())
+                .map(|s| Sha256::digest(s.as_bytes()).into()),
         };
         let mut cfg = cfg;
         cfg.job_address_space =

@@ -137,6 +137,23 @@ pub struct Job {
     /// How many times a worker has started it (restarts re-run it).
     pub attempts: u32,
     pub warnings: Vec<String>,
+    /// Where the finished job is posted, and how that went.
+    #[serde(default)]
+    pub callback: Option<Callback>,
+}
+
+/// A job's callback: its URL and its deliveries so far.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Callback {
+    pub url: String,
+    /// Deliveries tried.
+    pub attempts: u32,
+    /// When one was answered with a 2xx, ms since the epoch.
+    pub delivered_ms: Option<u64>,
+    /// Set when no more deliveries will be tried without success.
+    pub gave_up: bool,
+    /// Why the last delivery failed (a status or a connection error).
+    pub last_error: Option<String>,
 }
 
 /// Milliseconds since the Unix epoch.
@@ -215,6 +232,8 @@ pub struct View<'a> {
     cached: bool,
     attempts: u32,
     warnings: &'a [String],
+    #[serde(skip_serializing_if = "Option::is_none")]
+    callback: Option<&'a Callback>,
     links: Links,
 }
 
@@ -246,6 +265,7 @@ pub fn view(job: &Job, with_report: bool) -> View<'_> {
         cached: job.cached_from.is_some(),
         attempts: job.attempts,
         warnings: &job.warnings,
+        callback: job.callback.as_ref(),
         links: Links {
             this: format!("/v1/jobs/{}", job.id),
         },

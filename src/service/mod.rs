@@ -10,6 +10,7 @@
 
 mod api;
 mod app;
+pub mod callback;
 pub mod config;
 mod data_dir;
 mod engine;

@@ -135,6 +135,7 @@ async fn run(cfg: Config, addrs: Vec<SocketAddr>) -> Result<(), ServeError> {
         tokio::spawn(worker::worker(app.clone(), index, thread));
     }
     tokio::spawn(reaper(app.clone()));
+    tokio::spawn(super::callback::dispatch(app.clone()));
 
     let (stop_http, stopped) = tokio::sync::oneshot::channel::<()>();
     let mut server = tokio::spawn(

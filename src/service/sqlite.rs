@@ -8,7 +8,7 @@ use std::sync::Mutex;
 
 use rusqlite::{params, Connection, OptionalExtension, Transaction};
 
-use super::job::{Job, JobState, Progress};
+use super::job::{Callback, Job, JobState, Progress};
 use super::store::{JobStore, StoreError, Submitted};
 
 pub struct SqliteJobStore {
@@ -31,6 +31,11 @@ CREATE INDEX IF NOT EXISTS jobs_state ON jobs(state, seq);
 CREATE INDEX IF NOT EXISTS jobs_owner ON jobs(owner, seq);
 CREATE INDEX IF NOT EXISTS jobs_key ON jobs(owner, input_key, state);
 CREATE INDEX IF NOT EXISTS jobs_finished ON jobs(finished_ms);
+-- Jobs with a callback to deliver once they are finished, and when next.
+CREATE TABLE IF NOT EXISTS callbacks (
+    id TEXT PRIMARY KEY,
+    due_ms INTEGER NOT NULL
+);
 ";
 
 fn db_err(e: rusqlite::Error) -> StoreError {
@@ -171,6 +176,13 @@ impl JobStore for SqliteJobStore {
                 ],
             )
             .map_err(db_err)?;
+            if job.callback.is_some() {
+                tx.execute(
+                    "INSERT INTO callbacks (id, due_ms) VALUES (?1, 0)",
+                    [&job.id],
+                )
+                .map_err(db_err)?;
+            }
             Ok(Submitted::Created)
         })
     }
@@ -315,6 +327,44 @@ impl JobStore for SqliteJobStore {
         self.with(|tx| {
             tx.execute("DELETE FROM jobs WHERE id = ?1", [id])
                 .map_err(db_err)?;
+            tx.execute("DELETE FROM callbacks WHERE id = ?1", [id])
+                .map_err(db_err)?;
+            Ok(())
+        })
+    }
+
+    fn callbacks_due(&self, now_ms: u64, limit: usize) -> Result<Vec<Job>, StoreError> {
+        self.with(|tx| {
+            query_jobs(
+                tx,
+                "SELECT j.seq, j.id, j.data FROM callbacks c JOIN jobs j ON j.id = c.id
+                 WHERE c.due_ms <= ?1 AND j.state IN ('succeeded', 'failed', 'canceled')
+                 ORDER BY c.due_ms LIMIT ?2",
+                params![now_ms as i64, limit as i64],
+            )
+        })
+    }
+
+    fn callback_tried(
+        &self,
+        id: &str,
+        status: &Callback,
+        next_ms: Option<u64>,
+    ) -> Result<(), StoreError> {
+        self.with(|tx| {
+            let Some(mut job) = load(tx, id)? else {
+                return Ok(());
+            };
+            job.callback = Some(status.clone());
+            store(tx, &job)?;
+            match next_ms {
+                Some(ms) => tx.execute(
+                    "UPDATE callbacks SET due_ms = ?2 WHERE id = ?1",
+                    params![id, ms as i64],
+                ),
+                None => tx.execute("DELETE FROM callbacks WHERE id = ?1", [id]),
+            }
+            .map_err(db_err)?;
             Ok(())
         })
     }

@@ -95,6 +95,16 @@ pub trait JobStore: Send + Sync + 'static {
     ) -> Result<(Vec<String>, Vec<String>), StoreError>;
 
     fn delete(&self, id: &str) -> Result<(), StoreError>;
+    /// Finished jobs whose callback is due at `now_ms`, oldest due first.
+    fn callbacks_due(&self, now_ms: u64, limit: usize) -> Result<Vec<Job>, StoreError>;
+    /// Records a delivery of `id`'s callback; `next_ms` is when to try
+    /// again, `None` when no more tries are due (delivered or given up).
+    fn callback_tried(
+        &self,
+        id: &str,
+        status: &super::job::Callback,
+        next_ms: Option<u64>,
+    ) -> Result<(), StoreError>;
 
     /// Finished jobs whose `finished_ms` is before `before_ms`.
     fn expired(&self, before_ms: u64, limit: usize) -> Result<Vec<Job>, StoreError>;
