@@ -95,9 +95,19 @@ fn a_callback_is_retried_until_it_arrives_signed() {
     let data = std::env::temp_dir().join(format!("seamstress-callback-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&data);
     let allow = format!("127.0.0.1:{port}");
+    let default = format!("other=http://127.0.0.1:{port}/default");
     let server = Server::start(
         &data,
-        &["--token", "farm:s3cret", "--callback-allow", &allow],
+        &[
+            "--token",
+            "farm:s3cret",
+            "--token",
+            "other:pw",
+            "--callback-allow",
+            &allow,
+            "--callback-default",
+            &default,
+        ],
     );
     let http = reqwest::blocking::Client::new();
     let post = |callback: &str| {
@@ -162,6 +172,22 @@ fn a_callback_is_retried_until_it_arrives_signed() {
     }
     assert_eq!(shown["callback"]["attempts"], 3, "{shown}");
     assert!(shown["callback"]["delivered_ms"].is_u64(), "{shown}");
+
+    // A token's default callback, for jobs that name none.
+    let r = http
+        .post(server.url("/v1/jobs"))
+        .query(&[("name", "cube.glb")])
+        .bearer_auth("pw")
+        .header("content-type", "model/gltf-binary")
+        .body(model())
+        .send()
+        .unwrap();
+    assert!(r.status().is_success(), "{}", r.status());
+    let d = deliveries
+        .recv_timeout(Duration::from_secs(60))
+        .expect("the default callback");
+    assert!(verifies("pw", &d), "signature {:?}", d.signature);
+    assert!(!verifies("s3cret", &d));
     drop(server);
     let _ = std::fs::remove_dir_all(&data);
 }

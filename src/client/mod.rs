@@ -56,6 +56,9 @@ struct JobView {
 struct ProgressView {
     stage: String,
     fraction: f64,
+    /// The texture being processed (from 1) and how many there are.
+    #[serde(default)]
+    texture: Option<[usize; 2]>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -172,7 +175,7 @@ impl Remote {
         while matches!(job.state.as_str(), "queued" | "running") {
             let at = Progress {
                 stage: &job.progress.stage,
-                texture: None,
+                texture: job.progress.texture.map(|[i, n]| (i.saturating_sub(1), n)),
                 fraction: job.progress.fraction,
             };
             if let Err(stop) = sink.progress(&at) {

@@ -498,7 +498,8 @@ async fn submit(
     let wait = prefer_wait(&app, req.headers());
 
     let (bundle, part_options, part_callback) = read_upload(&app, req, extras.name).await?;
-    let callback = match part_callback.or(extras.callback) {
+    let given = part_callback.or(extras.callback);
+    let callback = match given.or_else(|| app.cfg.callback_defaults.get(&owner).cloned()) {
         Some(url) => Some(callback_for(&app, &owner, &url)?),
         None => None,
     };

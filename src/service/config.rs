@@ -87,6 +87,15 @@ pub struct ServeArgs {
     /// tokens, each token's own secret signs its jobs' callbacks).
     #[arg(long, env = "SEAMSTRESS_CALLBACK_SECRET", hide_env_values = true)]
     pub callback_secret: Option<String>,
+    /// The callback of a token's jobs that name none, as NAME=URL (or URL
+    /// alone on a server without tokens); repeat for more (environment:
+    /// comma-separated).
+    #[arg(
+        long = "callback-default",
+        env = "SEAMSTRESS_CALLBACK_DEFAULTS",
+        value_delimiter = ','
+    )]
+    pub callback_defaults: Vec<String>,
 }
 
 /// The configuration file: the same options as [`ServeArgs`].
@@ -110,6 +119,7 @@ struct FileConfig {
     insecure_open: Option<bool>,
     callback_allow: Option<Vec<String>>,
     callback_secret: Option<String>,
+    callback_defaults: Option<Vec<String>>,
 }
 
 /// A duration or size written as a bare number or with a unit.
@@ -180,6 +190,9 @@ pub struct Config {
     pub callback_allow: Vec<String>,
     /// SHA-256 of the secret signing an open server's callbacks.
     pub callback_key: Option<[u8; 32]>,
+    /// Each owner's callback for jobs that name none (owner `""` on a
+    /// server without tokens).
+    pub callback_defaults: std::collections::BTreeMap<String, String>,
 }
 
 impl Default for Config {
@@ -204,6 +217,7 @@ impl Default for Config {
             rebuild_store: false,
             callback_allow: Vec::new(),
             callback_key: None,
+            callback_defaults: Default::default(),
         }
     }
 }
@@ -294,8 +308,15 @@ impl Config {
                 .clone()
                 .or(file.callback_secret.clone())
                 .map(|s| Sha256::digest(s.as_bytes()).into()),
+            callback_defaults: Default::default(),
+        };
+        let default_specs = if args.callback_defaults.is_empty() {
+            file.callback_defaults.clone().unwrap_or_default()
+        } else {
+            args.callback_defaults.clone()
         };
         let mut cfg = cfg;
+        cfg.callback_defaults = parse_callback_defaults(&cfg, &default_specs)?;
         cfg.job_address_space =
             job_address_space.unwrap_or_else(|| address_space_for(cfg.max_memory));
         cfg.check()?;
@@ -363,6 +384,38 @@ fn read_file(path: &Path) -> Result<FileConfig, ConfigError> {
         path: path.display().to_string(),
         message: e.message().to_string(),
     })
+}
+
+/// `NAME=URL` (or a bare URL for a server without tokens), each URL on
+/// the allow-list and each name a token's.
+fn parse_callback_defaults(
+    cfg: &Config,
+    specs: &[String],
+) -> Result<std::collections::BTreeMap<String, String>, ConfigError> {
+    let invalid = |message: String| ConfigError::Invalid {
+        option: "callback_defaults",
+        message,
+    };
+    let mut out = std::collections::BTreeMap::new();
+    for spec in specs.iter().map(|s| s.trim()).filter(|s| !s.is_empty()) {
+        let (owner, url) = if spec.starts_with("http://") || spec.starts_with("https://") {
+            ("", spec)
+        } else {
+            spec.split_once('=')
+                .ok_or_else(|| invalid(format!("{spec:?} is not NAME=URL")))?
+        };
+        let known = if cfg.tokens.is_empty() {
+            owner.is_empty()
+        } else {
+            cfg.tokens.iter().any(|t| t.owner == owner)
+        };
+        if !known {
+            return Err(invalid(format!("{owner:?} is not a token's name")));
+        }
+        let url = super::callback::check_url(cfg, url).map_err(invalid)?;
+        out.insert(owner.to_string(), url);
+    }
+    Ok(out)
 }
 
 fn parse_tokens(specs: &[String]) -> Result<Vec<Token>, ConfigError> {

@@ -7,7 +7,7 @@ use crate::budget::Limits;
 use crate::model::LoadOptions;
 use crate::pipeline::{self, JobError, JobInput, JobSettings, ProcessOptions, Progress};
 
-use super::job::StageTimings;
+use super::job::{Progress as JobProgress, StageTimings};
 use super::upload::Bundle;
 
 pub use crate::pipeline::Stop;
@@ -70,17 +70,17 @@ pub fn validate(
 }
 
 /// Runs one job: [`pipeline::run_job`] over the upload. `checkpoint` is
-/// called between stages and textures with the stage and the fraction
-/// done; an `Err` from it stops the job there.
+/// called between stages and textures with the job's progress; an `Err`
+/// from it stops the job there.
 pub fn run(
     bundle: &Bundle,
     opts: &ProcessOptions,
     max_texture_size: u32,
     limits: &Limits,
-    checkpoint: &mut dyn FnMut(&str, f64) -> Result<(), Stop>,
+    checkpoint: &mut dyn FnMut(&JobProgress) -> Result<(), Stop>,
 ) -> Result<Produced, EngineError> {
     let settings = settings(opts, max_texture_size, limits);
-    let mut sink = |at: &Progress<'_>| checkpoint(at.stage, at.fraction);
+    let mut sink = |at: &Progress<'_>| checkpoint(&JobProgress::of(at));
     let out = pipeline::run_job(&input(bundle), &settings, &mut sink).map_err(|e| match e {
         JobError::BadInput(m) => EngineError::BadInput(m),
         JobError::TooLarge(m) => EngineError::TooLarge(m),

@@ -24,7 +24,7 @@ use serde_json::value::RawValue;
 use crate::budget::Limits;
 
 use super::engine::{self, EngineError, Produced, Stop};
-use super::job::StageTimings;
+use super::job::{Progress, StageTimings};
 use super::upload::Bundle;
 use crate::pipeline::ProcessOptions;
 
@@ -40,10 +40,7 @@ const STDERR_TAIL: usize = 2048;
 #[derive(Debug, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 enum Event {
-    Progress {
-        stage: String,
-        fraction: f64,
-    },
+    Progress(Progress),
     /// The job's files are `out/0`, `out/1`, … in the order of `names`.
     Done {
         names: Vec<String>,
@@ -95,7 +92,7 @@ pub fn run(
     options: &ProcessOptions,
     max_texture_size: u32,
     limits: &Limits,
-    checkpoint: &mut dyn FnMut(&str, f64) -> Result<(), Stop>,
+    checkpoint: &mut dyn FnMut(&Progress) -> Result<(), Stop>,
     stopped: &dyn Fn() -> Option<Stop>,
 ) -> Result<Produced, EngineError> {
     let dir = iso.scratch.join(tag);
@@ -179,8 +176,8 @@ pub fn run(
     let mut outcome = None;
     let stop = loop {
         match received.recv_timeout(POLL) {
-            Ok(Event::Progress { stage, fraction }) => {
-                if let Err(stop) = checkpoint(&stage, fraction) {
+            Ok(Event::Progress(at)) => {
+                if let Err(stop) = checkpoint(&at) {
                     break Some(stop);
                 }
             }
@@ -292,11 +289,8 @@ pub fn child(dir: &Path) -> std::io::Result<()> {
     let limits = Limits {
         max_memory: task.max_memory,
     };
-    let mut checkpoint = |stage: &str, fraction: f64| -> Result<(), Stop> {
-        let _ = emit(&Event::Progress {
-            stage: stage.to_string(),
-            fraction,
-        });
+    let mut checkpoint = |at: &Progress| -> Result<(), Stop> {
+        let _ = emit(&Event::Progress(at.clone()));
         Ok(())
     };
     let event = match engine::run(

@@ -65,6 +65,10 @@ pub struct Progress {
     pub stage: String,
     /// Of the whole job, 0 to 1.
     pub fraction: f64,
+    /// In the `process` stage: the texture being processed (from 1) and
+    /// how many there are.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub texture: Option<[usize; 2]>,
 }
 
 impl Progress {
@@ -72,6 +76,16 @@ impl Progress {
         Progress {
             stage: stage.to_string(),
             fraction,
+            texture: None,
+        }
+    }
+
+    /// The pipeline's progress event, as a job shows it.
+    pub fn of(at: &crate::pipeline::Progress<'_>) -> Progress {
+        Progress {
+            stage: at.stage.to_string(),
+            fraction: at.fraction,
+            texture: at.texture.map(|(i, n)| [i + 1, n]),
         }
     }
 }

@@ -247,11 +247,11 @@ fn execute(app: &Shared, mut job: Job, flag: &AtomicU8) -> Result<JobState, Stor
             tracing::warn!(attempt, "job process crashed; trying once more");
         }
         let tag = format!("{}-{attempt}", job.id);
-        let mut checkpoint = |stage: &str, fraction: f64| -> Result<(), Stop> {
+        let mut checkpoint = |at: &Progress| -> Result<(), Stop> {
             if let Some(stop) = stop_of(flag) {
                 return Err(stop);
             }
-            job.progress = Progress::at(stage, fraction);
+            job.progress = at.clone();
             match app.jobs.update_running(&job) {
                 Ok(true) => Ok(()),
                 // Canceled, or timed out, through the store.
