@@ -15,6 +15,7 @@ use sha2::{Digest, Sha256};
 use crate::model::rewrite::referenced_files;
 use crate::model::Resolver;
 use crate::pipeline::ProcessOptions;
+use crate::service::config::hex;
 
 /// The stamp's file name in a model's output folder.
 pub const STAMP_NAME: &str = "seamstress.stamp.json";
@@ -48,7 +49,7 @@ pub fn key(main: &[u8], files: &dyn Resolver, options: &ProcessOptions) -> Strin
             Err(_) => part(b""),
         }
     }
-    h.finalize().iter().map(|b| format!("{b:02x}")).collect()
+    hex(&h.finalize())
 }
 
 impl Stamp {

@@ -83,9 +83,7 @@ pub fn run_model(
     sink: &mut dyn Sink,
 ) -> Result<Written, RunError> {
     // Before the work, so that an unusable output folder fails at once.
-    let mut staging = Staging::create(out).map_err(|e| {
-        RunError::BadInput(format!("--out {}: cannot write there: {e}", out.display()))
-    })?;
+    let mut staging = Staging::open(out)?;
     let job = JobInput {
         name: &model.name,
         main: &model.main,
@@ -300,7 +298,15 @@ pub(crate) struct Staging {
 }
 
 impl Staging {
-    pub(crate) fn create(out: &Path) -> std::io::Result<Staging> {
+    /// A staging folder in `out`; an `out` that cannot be written is the
+    /// caller's input at fault.
+    pub(crate) fn open(out: &Path) -> Result<Staging, RunError> {
+        Staging::create(out).map_err(|e| {
+            RunError::BadInput(format!("--out {}: cannot write there: {e}", out.display()))
+        })
+    }
+
+    fn create(out: &Path) -> std::io::Result<Staging> {
         std::fs::create_dir_all(out)?;
         remove_abandoned(out);
         let nanos = std::time::SystemTime::now()

@@ -22,6 +22,7 @@ use sha2::{Digest, Sha256};
 use crate::batch::run::{write_outputs, ModelFiles, RunError, Runner, Staging, Written};
 use crate::model::rewrite::referenced_files;
 use crate::pipeline::{ProcessOptions, Progress, Sink};
+use crate::service::config::hex;
 use retry::{with_retries, RequestError, RetryParams};
 
 /// Where the server is and how to talk to it.
@@ -129,6 +130,7 @@ impl Remote {
                 self.http
                     .post(&url)
                     .query(&[("name", file_name.as_str())])
+                    .query(&query_options(&self.options))
                     .header(reqwest::header::CONTENT_TYPE, "model/gltf-binary")
                     .body(model.main.clone())
             } else {
@@ -145,11 +147,6 @@ impl Remote {
                     );
                 }
                 self.http.post(&url).multipart(form)
-            };
-            let req = if glb {
-                req.query(&query_options(&self.options))
-            } else {
-                req
             };
             self.authorised(req.header("Idempotency-Key", key)).send()
         };
@@ -200,10 +197,7 @@ impl Remote {
         let bytes = resp
             .bytes()
             .map_err(|e| RunError::Internal(format!("{name}: {what}: {e}")))?;
-        let sha: String = Sha256::digest(&bytes)
-            .iter()
-            .map(|b| format!("{b:02x}"))
-            .collect();
+        let sha = hex(&Sha256::digest(&bytes));
         if file.etag.trim_matches('"') != sha {
             return Err(RunError::Internal(format!(
                 "{name}: {} arrived damaged (its SHA-256 is not its ETag {})",
@@ -265,9 +259,7 @@ impl Runner for Remote {
         key: &str,
         sink: &mut dyn Sink,
     ) -> Result<Written, RunError> {
-        let mut staging = Staging::create(out).map_err(|e| {
-            RunError::BadInput(format!("--out {}: cannot write there: {e}", out.display()))
-        })?;
+        let mut staging = Staging::open(out)?;
         let job = self.upload(model, input, key)?;
         tracing::debug!(model = %model.name, job = %job.id, "submitted");
         let job = self.wait(job, &model.name, sink)?;

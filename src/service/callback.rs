@@ -17,7 +17,7 @@ use hmac::{Hmac, Mac};
 use sha2::Sha256;
 
 use super::app::Shared;
-use super::config::Config;
+use super::config::{hex, Config};
 use super::job::{now_ms, view, Callback, Job};
 
 /// The header that carries the signature.
@@ -78,12 +78,7 @@ pub fn signature(key: &[u8], unix_secs: u64, body: &[u8]) -> String {
     mac.update(unix_secs.to_string().as_bytes());
     mac.update(b".");
     mac.update(body);
-    let hex: String = mac
-        .finalize()
-        .into_bytes()
-        .iter()
-        .map(|b| format!("{b:02x}"))
-        .collect();
+    let hex = hex(&mac.finalize().into_bytes());
     format!("t={unix_secs},v1={hex}")
 }
 
