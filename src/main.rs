@@ -54,6 +54,9 @@ enum Command {
     Submit(SubmitArgs),
     /// Run the HTTP service: a durable job queue and a worker pool over the engine.
     Serve(Box<seamstress::service::ServeArgs>),
+    /// Run workers only, on a cluster's shared job store and files: claims
+    /// and runs jobs, serves /metrics and /healthz.
+    Worker(Box<seamstress::service::WorkerArgs>),
     /// One job of a server's worker, in a process of its own.
     #[command(hide = true)]
     RunJob {
@@ -215,7 +218,7 @@ fn main() -> ExitCode {
     // A one-shot command stays quiet; a service logs every request and job.
     let default_level = match cli.command {
         Command::Process(_) | Command::Submit(_) | Command::RunJob { .. } => "warn",
-        Command::Serve(_) => "info",
+        Command::Serve(_) | Command::Worker(_) => "info",
     };
     let format = cli.log_format;
     init_logging(format, default_level);
@@ -235,6 +238,10 @@ fn main() -> ExitCode {
             Err(e) => fail(format, 1, &format!("{}: {e}", dir.display())),
         },
         Command::Serve(args) => match seamstress::service::serve(*args) {
+            Ok(()) => ExitCode::SUCCESS,
+            Err(e) => fail(format, if e.is_usage() { 2 } else { 1 }, &e.to_string()),
+        },
+        Command::Worker(args) => match seamstress::service::work(*args) {
             Ok(()) => ExitCode::SUCCESS,
             Err(e) => fail(format, if e.is_usage() { 2 } else { 1 }, &e.to_string()),
         },

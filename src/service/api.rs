@@ -538,6 +538,7 @@ async fn submit(
         attempts: 0,
         warnings: Vec::new(),
         callback,
+        worker: None,
     };
 
     let queue_size = app.cfg.queue_size;
@@ -921,7 +922,7 @@ async fn get_file(
     Ok(resp)
 }
 
-async fn healthz() -> Response {
+pub(super) async fn healthz() -> Response {
     Json(json!({ "status": "ok" })).into_response()
 }
 
@@ -945,11 +946,24 @@ async fn readyz(State(app): State<Shared>) -> Result<Response, ApiError> {
             60,
         ));
     }
-    blocking(&app, |a| Ok(a.jobs.counts()?)).await?;
+    // Both stores must answer: a server that cannot reach either can take
+    // no job in, nor hand one out.
+    let down = blocking(&app, |a| {
+        Ok([
+            ("job store", a.jobs.check()),
+            ("file store", a.files.check()),
+        ]
+        .into_iter()
+        .find_map(|(which, r)| r.err().map(|e| format!("the {which} does not answer: {e}"))))
+    })
+    .await?;
+    if let Some(message) = down {
+        return Err(ApiError::unavailable("store_unavailable", message, 5));
+    }
     Ok(Json(json!({ "status": "ready" })).into_response())
 }
 
-async fn metrics(State(app): State<Shared>) -> Result<Response, ApiError> {
+pub(super) async fn metrics(State(app): State<Shared>) -> Result<Response, ApiError> {
     let counts = blocking(&app, |a| Ok(a.jobs.counts()?)).await?;
     let text = app.metrics.render(&counts, app.cfg.workers);
     Ok((

@@ -39,8 +39,17 @@ pub struct App {
     /// Set once on shutdown: stop accepting and claiming.
     pub stopping: watch::Sender<bool>,
     pub accepting: AtomicBool,
-    /// Stop flags of the jobs running in this process.
-    pub running: Mutex<HashMap<String, Arc<AtomicU8>>>,
+    /// The jobs running in this process: their stop flags, and the worker
+    /// holding each one's lease.
+    pub running: Mutex<HashMap<String, Running>>,
+    /// This process among all that share the store: `HOST-PID`.
+    pub process: String,
+}
+
+/// A job running in this process.
+pub struct Running {
+    pub flag: Arc<AtomicU8>,
+    pub worker: String,
 }
 
 pub type Shared = Arc<App>;
@@ -57,18 +66,29 @@ impl App {
             stopping: watch::channel(false).0,
             accepting: AtomicBool::new(true),
             running: Mutex::new(HashMap::new()),
+            process: format!("{}-{}", host_name(), std::process::id()),
         }
     }
 
-    pub fn running(&self) -> std::sync::MutexGuard<'_, HashMap<String, Arc<AtomicU8>>> {
+    pub fn running(&self) -> std::sync::MutexGuard<'_, HashMap<String, Running>> {
         self.running.lock().unwrap_or_else(|p| p.into_inner())
     }
 
     /// Signals a job running here to stop at its next checkpoint.
     pub fn signal(&self, id: &str, how: u8) {
-        if let Some(flag) = self.running().get(id) {
-            flag.store(how, Ordering::Release);
+        if let Some(r) = self.running().get(id) {
+            r.flag.store(how, Ordering::Release);
         }
+    }
+
+    /// The name worker `index` of this process holds leases under.
+    pub fn worker_name(&self, index: usize) -> String {
+        format!("{}-{index}", self.process)
+    }
+
+    /// How long a claim holds before its worker must renew it.
+    pub fn lease(&self) -> std::time::Duration {
+        self.cfg.lease
     }
 
     pub fn announce_finished(&self) {
@@ -77,6 +97,18 @@ impl App {
 
     pub fn is_stopping(&self) -> bool {
         *self.stopping.borrow()
+    }
+}
+
+/// The machine's name, to tell apart the workers of a cluster.
+fn host_name() -> String {
+    let mut buf = [0u8; 256];
+    // SAFETY: the buffer is valid for its length; the name is cut to it.
+    let ok = unsafe { libc::gethostname(buf.as_mut_ptr().cast(), buf.len()) } == 0;
+    let len = buf.iter().position(|&b| b == 0).unwrap_or(buf.len());
+    match std::str::from_utf8(&buf[..len]) {
+        Ok(name) if ok && !name.is_empty() => name.to_string(),
+        _ => "localhost".to_string(),
     }
 }
 

@@ -15,13 +15,28 @@ pub struct ServeArgs {
     /// Address to listen on; port 0 picks a free one [default: 127.0.0.1:8080].
     #[arg(long, env = "SEAMSTRESS_LISTEN")]
     pub listen: Option<String>,
-    /// Folder for the job database and the files [default: ./data].
+    /// Folder for the job database and the files [default: ./data]; with
+    /// --store and --files elsewhere, only the jobs' scratch space.
     #[arg(long, env = "SEAMSTRESS_DATA")]
     pub data: Option<PathBuf>,
+    /// The job store shared by a cluster's processes:
+    /// postgres://USER@HOST:PORT/DB [default: SQLite in the data folder].
+    #[arg(long, env = "SEAMSTRESS_STORE", hide_env_values = true)]
+    pub store: Option<String>,
+    /// Where job files live: s3://BUCKET/PREFIX (endpoint and credentials
+    /// from the AWS_* environment variables) or a folder [default: the data
+    /// folder's files/].
+    #[arg(long, env = "SEAMSTRESS_FILES")]
+    pub files: Option<String>,
+    /// How long a worker's claim on a job holds without renewal; a job
+    /// whose worker died goes back to the queue after it [default: 30s].
+    #[arg(long, env = "SEAMSTRESS_LEASE")]
+    pub lease: Option<String>,
     /// TOML file with any of these options.
     #[arg(long, env = "SEAMSTRESS_CONFIG")]
     pub config: Option<PathBuf>,
-    /// Jobs processed at once [default: the number of cores].
+    /// Jobs processed at once; 0 for an API server that runs none
+    /// [default: the number of cores].
     #[arg(long, env = "SEAMSTRESS_WORKERS")]
     pub workers: Option<usize>,
     /// Most jobs waiting for a worker; beyond it, submissions get 503 [default: 64].
@@ -104,6 +119,9 @@ pub struct ServeArgs {
 struct FileConfig {
     listen: Option<String>,
     data: Option<PathBuf>,
+    store: Option<String>,
+    files: Option<String>,
+    lease: Option<Quantity>,
     workers: Option<usize>,
     queue_size: Option<usize>,
     job_timeout: Option<Quantity>,
@@ -155,6 +173,24 @@ pub enum ConfigError {
     },
 }
 
+/// Where job files live.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum FilesAt {
+    /// An S3-compatible bucket: `s3://BUCKET/PREFIX`.
+    Bucket(String),
+    Folder(PathBuf),
+}
+
+impl FilesAt {
+    fn parse(text: &str) -> FilesAt {
+        if text.starts_with("s3://") {
+            FilesAt::Bucket(text.to_string())
+        } else {
+            FilesAt::Folder(PathBuf::from(text.strip_prefix("file://").unwrap_or(text)))
+        }
+    }
+}
+
 /// A bearer token: the secret is kept only as its digest.
 #[derive(Clone, Debug)]
 pub struct Token {
@@ -168,6 +204,11 @@ pub struct Token {
 pub struct Config {
     pub listen: String,
     pub data: PathBuf,
+    /// The shared job store's URL; `None` for the embedded one.
+    pub store: Option<String>,
+    /// Where job files live; `None` for the data folder's `files/`.
+    pub files: Option<FilesAt>,
+    pub lease: Duration,
     pub workers: usize,
     pub queue_size: usize,
     pub job_timeout: Duration,
@@ -201,6 +242,9 @@ impl Default for Config {
         Config {
             listen: "127.0.0.1:8080".into(),
             data: PathBuf::from("data"),
+            store: None,
+            files: None,
+            lease: Duration::from_secs(30),
             workers,
             queue_size: 64,
             job_timeout: Duration::from_secs(600),
@@ -273,6 +317,13 @@ impl Config {
         let cfg = Config {
             listen: args.listen.clone().or(file.listen).unwrap_or(d.listen),
             data: args.data.clone().or(file.data).unwrap_or(d.data),
+            store: args.store.clone().or(file.store),
+            files: args
+                .files
+                .clone()
+                .or(file.files)
+                .map(|f| FilesAt::parse(&f)),
+            lease: duration("lease", &args.lease, &file.lease)?.unwrap_or(d.lease),
             workers,
             // Every worker may run a job at its peak at once.
             max_memory: max_memory
@@ -328,8 +379,13 @@ impl Config {
             option,
             message: message.to_string(),
         };
-        if self.workers == 0 {
-            return Err(invalid("workers", "must be at least 1"));
+        if let Some(url) = &self.store {
+            if !(url.starts_with("postgres://") || url.starts_with("postgresql://")) {
+                return Err(invalid("store", "expected postgres://USER@HOST:PORT/DB"));
+            }
+        }
+        if self.lease < Duration::from_secs(1) {
+            return Err(invalid("lease", "must be at least 1s"));
         }
         if self.queue_size == 0 {
             return Err(invalid("queue_size", "must be at least 1"));
@@ -346,6 +402,23 @@ impl Config {
     /// The addresses `listen` names, refusing to expose a server without
     /// tokens beyond loopback unless `insecure_open` says so.
     pub fn listen_addrs(&self) -> Result<Vec<SocketAddr>, ConfigError> {
+        let addrs = self.listen_addrs_unchecked()?;
+        if self.tokens.is_empty() && !self.insecure_open {
+            if let Some(open) = addrs.iter().find(|a| !a.ip().is_loopback()) {
+                return Err(ConfigError::Invalid {
+                    option: "listen",
+                    message: format!(
+                        "{open} is not a loopback address: configure tokens, or pass \
+                         --insecure-open to serve anyone who can reach it"
+                    ),
+                });
+            }
+        }
+        Ok(addrs)
+    }
+
+    /// The addresses `listen` names.
+    pub fn listen_addrs_unchecked(&self) -> Result<Vec<SocketAddr>, ConfigError> {
         let addrs: Vec<SocketAddr> = self
             .listen
             .to_socket_addrs()
@@ -359,17 +432,6 @@ impl Config {
                 option: "listen",
                 message: format!("{:?} names no address", self.listen),
             });
-        }
-        if self.tokens.is_empty() && !self.insecure_open {
-            if let Some(open) = addrs.iter().find(|a| !a.ip().is_loopback()) {
-                return Err(ConfigError::Invalid {
-                    option: "listen",
-                    message: format!(
-                        "{open} is not a loopback address: configure tokens, or pass \
-                         --insecure-open to serve anyone who can reach it"
-                    ),
-                });
-            }
         }
         Ok(addrs)
     }

@@ -154,6 +154,55 @@ pub struct Job {
     /// Where the finished job is posted, and how that went.
     #[serde(default)]
     pub callback: Option<Callback>,
+    /// The worker that holds (or last held) the job's lease.
+    #[serde(default)]
+    pub worker: Option<String>,
+}
+
+impl Job {
+    /// The record of a claim by `worker`: one more attempt, from now.
+    pub fn start(&mut self, worker: &str, now_ms: u64) {
+        self.state = JobState::Running;
+        self.started_ms = Some(now_ms);
+        self.attempts += 1;
+        self.progress = Progress::at("load", 0.0);
+        self.timings_ms.queued = Some(now_ms.saturating_sub(self.created_ms));
+        self.worker = Some(worker.to_string());
+    }
+
+    /// Back in the queue, to be claimed again.
+    pub fn requeue(&mut self) {
+        self.state = JobState::Queued;
+        self.started_ms = None;
+        self.progress = Progress::at("queued", 0.0);
+    }
+
+    /// A running job whose worker is gone: back in the queue, or failed
+    /// once it has been started `max_attempts` times. True if re-queued.
+    pub fn reclaim(&mut self, max_attempts: u32, now_ms: u64) -> bool {
+        if self.attempts < max_attempts {
+            self.requeue();
+            return true;
+        }
+        self.state = JobState::Failed;
+        self.finished_ms = Some(now_ms);
+        self.progress = Progress::at("done", self.progress.fraction);
+        self.error = Some(JobError {
+            code: "interrupted".into(),
+            message: format!(
+                "its worker stopped during each of {} attempts",
+                self.attempts
+            ),
+        });
+        false
+    }
+
+    /// The record of a cancel: finished now.
+    pub fn cancel(&mut self, now_ms: u64) {
+        self.state = JobState::Canceled;
+        self.finished_ms = Some(now_ms);
+        self.progress = Progress::at("done", self.progress.fraction);
+    }
 }
 
 /// A job's callback: its URL and its deliveries so far.
@@ -248,6 +297,8 @@ pub struct View<'a> {
     warnings: &'a [String],
     #[serde(skip_serializing_if = "Option::is_none")]
     callback: Option<&'a Callback>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    worker: Option<&'a str>,
     links: Links,
 }
 
@@ -280,6 +331,7 @@ pub fn view(job: &Job, with_report: bool) -> View<'_> {
         attempts: job.attempts,
         warnings: &job.warnings,
         callback: job.callback.as_ref(),
+        worker: job.worker.as_deref(),
         links: Links {
             this: format!("/v1/jobs/{}", job.id),
         },

@@ -44,6 +44,10 @@ pub struct Metrics {
     stages: Mutex<BTreeMap<&'static str, Histogram>>,
     requests: Mutex<BTreeMap<u16, u64>>,
     submit_latency: Mutex<Histogram>,
+    /// Jobs claimed, by this process's worker.
+    claimed: Mutex<BTreeMap<String, u64>>,
+    /// Leases this process found run out, by the worker that held them.
+    leases_expired: Mutex<BTreeMap<String, u64>>,
 }
 
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
@@ -64,6 +68,16 @@ impl Metrics {
 
     pub fn request(&self, status: u16) {
         *lock(&self.requests).entry(status).or_default() += 1;
+    }
+
+    pub fn claimed(&self, worker: &str) {
+        *lock(&self.claimed).entry(worker.to_string()).or_default() += 1;
+    }
+
+    pub fn lease_expired(&self, worker: &str) {
+        *lock(&self.leases_expired)
+            .entry(worker.to_string())
+            .or_default() += 1;
     }
 
     pub fn submission(&self, secs: f64) {
@@ -107,6 +121,23 @@ impl Metrics {
             "Workers running a job.",
             self.busy_workers.load(Ordering::Relaxed),
         );
+        for (name, help, map) in [
+            (
+                "seamstress_jobs_claimed_total",
+                "Jobs claimed by this process's workers.",
+                &self.claimed,
+            ),
+            (
+                "seamstress_leases_expired_total",
+                "Leases found run out by this process, by the worker that held them.",
+                &self.leases_expired,
+            ),
+        ] {
+            let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} counter");
+            for (worker, n) in lock(map).iter() {
+                let _ = writeln!(out, "{name}{{worker=\"{worker}\"}} {n}");
+            }
+        }
         counter(
             &mut out,
             "seamstress_jobs_submitted_total",

@@ -6,7 +6,9 @@
 //! (`engine`) off the async runtime. Routes and workers reach storage only
 //! through the [`store::JobStore`] and [`store::FileStore`] traits; the
 //! embedded implementations are SQLite ([`sqlite`]) and a local folder
-//! ([`files`]).
+//! ([`files`]), the cluster's PostgreSQL ([`postgres`]) and an
+//! S3-compatible object store ([`objects`]). `seamstress worker`
+//! ([`worker_role`]) runs workers without the API.
 
 mod api;
 mod app;
@@ -19,14 +21,18 @@ pub mod files;
 mod isolate;
 pub mod job;
 mod metrics;
+pub mod objects;
+pub mod postgres;
 mod server;
 pub mod sqlite;
 pub mod store;
 pub mod upload;
 mod worker;
+mod worker_role;
 
 pub use config::{Config, ServeArgs};
 pub use server::{serve, ServeError};
+pub use worker_role::{work, WorkerArgs};
 
 /// `seamstress run-job DIR`: one job in a process of its own, for a
 /// server's worker (see `service/isolate.rs`).

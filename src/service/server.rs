@@ -8,12 +8,14 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use super::app::{App, Shared, SHUTTING_DOWN};
-use super::config::{Config, ConfigError, ServeArgs};
+use super::config::{Config, ConfigError, FilesAt, ServeArgs};
 use super::data_dir::{self, DataDirError, DataLock};
 use super::files::LocalFileStore;
 use super::job::{is_job_id, now_ms};
+use super::objects::ObjectFileStore;
+use super::postgres::PgJobStore;
 use super::sqlite::SqliteJobStore;
-use super::store::{keys, FileStore, JobStore, StoreError};
+use super::store::{keys, FileStore, JobStore, StoreError, StoreEvent};
 use super::worker::{self, MAX_ATTEMPTS};
 
 #[derive(Debug, thiserror::Error)]
@@ -60,51 +62,144 @@ pub fn serve(args: ServeArgs) -> Result<(), ServeError> {
     result
 }
 
-/// The two stores a server runs on, and its hold on their folder.
+/// The two stores a server runs on, and its hold on its data folder.
 pub struct Stores {
     pub jobs: Arc<dyn JobStore>,
     pub files: Arc<dyn FileStore>,
     pub lock: DataLock,
+    /// Whether this process is the stores' only user (the embedded ones),
+    /// so that whatever is running in them at start was left by a crash.
+    pub exclusive: bool,
 }
 
-/// Opens the embedded stores under `cfg.data`, once no other server holds
-/// the folder and the job store is known to be the folder's own. Other
-/// implementations of the traits plug in here.
-pub fn open_stores(cfg: &Config) -> Result<Stores, ServeError> {
+/// Opens the stores `cfg` names, holding its data folder first: the
+/// embedded ones once the job store is known to be the folder's own, or
+/// the shared ones (PostgreSQL, an object store) whose connections run on
+/// `rt`.
+pub fn open_stores(cfg: &Config, rt: &tokio::runtime::Handle) -> Result<Stores, ServeError> {
     std::fs::create_dir_all(&cfg.data)
         .map_err(|e| StoreError::Files(format!("cannot create {}: {e}", cfg.data.display())))?;
     let lock = data_dir::lock(&cfg.data)?;
-    let store = data_dir::store_path(&cfg.data);
-    let files_root = cfg.data.join("files");
-    data_dir::check_store(&store, &files_root.join("jobs"), cfg.rebuild_store)?;
     // Scratch folders of job processes that a crash left behind.
     let _ = std::fs::remove_dir_all(cfg.data.join("tmp"));
-    let jobs = SqliteJobStore::open(&store)?;
-    let files = LocalFileStore::open(&files_root)?;
+    let files_root = cfg.data.join("files");
+    let jobs: Arc<dyn JobStore> = match &cfg.store {
+        Some(url) => Arc::new(PgJobStore::open(url, rt.clone())?),
+        None => {
+            let store = data_dir::store_path(&cfg.data);
+            if cfg.files.is_none() {
+                data_dir::check_store(&store, &files_root.join("jobs"), cfg.rebuild_store)?;
+            }
+            Arc::new(SqliteJobStore::open(&store)?)
+        }
+    };
+    let files: Arc<dyn FileStore> = match &cfg.files {
+        Some(FilesAt::Bucket(url)) => Arc::new(ObjectFileStore::open(url, rt.clone())?),
+        Some(FilesAt::Folder(root)) => Arc::new(LocalFileStore::open(root)?),
+        None => Arc::new(LocalFileStore::open(&files_root)?),
+    };
     Ok(Stores {
-        jobs: Arc::new(jobs),
-        files: Arc::new(files),
+        jobs,
+        files,
         lock,
+        exclusive: cfg.store.is_none(),
     })
 }
 
-/// Re-queues what a crash interrupted and removes files no job owns.
-fn recover(jobs: &dyn JobStore, files: &dyn FileStore) -> Result<(), StoreError> {
-    let (requeued, failed) = jobs.recover(MAX_ATTEMPTS, now_ms())?;
-    for id in &requeued {
-        tracing::info!(job_id = %id, "interrupted job re-queued");
+/// Puts back what a crash interrupted. A process that owns its stores
+/// takes back every running job at once, and removes files no job owns;
+/// on shared stores others are running jobs, whose leases tell.
+fn recover(jobs: &dyn JobStore, files: &dyn FileStore, exclusive: bool) -> Result<(), StoreError> {
+    let now = now_ms();
+    let expired_before = if exclusive { u64::MAX } else { now };
+    let reclaimed = jobs.reclaim(expired_before, MAX_ATTEMPTS, now)?;
+    for job in &reclaimed.requeued {
+        tracing::info!(job_id = %job.id, "interrupted job re-queued");
     }
-    for id in &failed {
-        tracing::warn!(job_id = %id, "job failed: interrupted too often");
-        files.delete_prefix(&keys::job(id))?;
+    for job in &reclaimed.failed {
+        tracing::warn!(job_id = %job.id, "job failed: interrupted too often");
+        files.delete_prefix(&keys::job(&job.id))?;
     }
-    for id in files.list("jobs")? {
-        if !is_job_id(&id) || jobs.get(&id)?.is_none() {
-            tracing::info!(dir = %id, "removing files of no job");
-            files.delete_prefix(&keys::job(&id))?;
+    // On shared stores a file may be stored just before its job is: only
+    // the lone owner can tell an orphan.
+    if exclusive {
+        for id in files.list("jobs")? {
+            if !is_job_id(&id) || jobs.get(&id)?.is_none() {
+                tracing::info!(dir = %id, "removing files of no job");
+                files.delete_prefix(&keys::job(&id))?;
+            }
         }
     }
     Ok(())
+}
+
+/// Opens the stores and recovers them, off the async runtime.
+pub(super) async fn start_stores(cfg: &Config) -> Result<Stores, ServeError> {
+    let (cfg, rt) = (cfg.clone(), tokio::runtime::Handle::current());
+    tokio::task::spawn_blocking(move || {
+        let stores = open_stores(&cfg, &rt)?;
+        recover(
+            stores.jobs.as_ref(),
+            stores.files.as_ref(),
+            stores.exclusive,
+        )?;
+        Ok(stores)
+    })
+    .await
+    .map_err(|e| StoreError::Jobs(e.to_string()))?
+}
+
+/// Wakes this process's idle workers and waiting requests when another
+/// process sharing the store queues or finishes a job.
+pub(super) fn relay_store_events(app: &Shared) {
+    let weak = Arc::downgrade(app);
+    app.jobs.listen(Arc::new(move |event| {
+        if let Some(app) = weak.upgrade() {
+            match event {
+                StoreEvent::Queued => app.work.notify_waiters(),
+                StoreEvent::Finished => app.announce_finished(),
+            }
+        }
+    }));
+}
+
+/// Every quarter of a lease, puts back the jobs whose lease ran out: their
+/// worker died, or lost the store for longer than the lease.
+pub(super) async fn leases(app: Shared) {
+    let mut stopping = app.stopping.subscribe();
+    loop {
+        tokio::select! {
+            _ = tokio::time::sleep(app.lease() / 4) => {}
+            _ = stopping.changed() => return,
+        }
+        let (jobs, files) = (app.jobs.clone(), app.files.clone());
+        let reclaimed = tokio::task::spawn_blocking(move || {
+            let now = now_ms();
+            let reclaimed = jobs.reclaim(now, MAX_ATTEMPTS, now)?;
+            for job in &reclaimed.failed {
+                files.delete_prefix(&keys::job(&job.id))?;
+            }
+            Ok::<_, StoreError>(reclaimed)
+        })
+        .await;
+        match reclaimed {
+            Ok(Ok(r)) => {
+                for job in r.requeued.iter().chain(&r.failed) {
+                    let worker = job.worker.as_deref().unwrap_or("");
+                    tracing::warn!(job_id = %job.id, worker, "lease ran out; job taken back");
+                    app.metrics.lease_expired(worker);
+                }
+                if !r.requeued.is_empty() {
+                    app.work.notify_waiters();
+                }
+                if !r.failed.is_empty() {
+                    app.announce_finished();
+                }
+            }
+            Ok(Err(e)) => tracing::error!(error = %e, "cannot take back expired leases"),
+            Err(e) => tracing::error!(error = %e, "lease task failed"),
+        }
+    }
 }
 
 async fn run(cfg: Config, addrs: Vec<SocketAddr>) -> Result<(), ServeError> {
@@ -112,13 +207,8 @@ async fn run(cfg: Config, addrs: Vec<SocketAddr>) -> Result<(), ServeError> {
         jobs,
         files,
         lock: _lock,
-    } = open_stores(&cfg)?;
-    {
-        let (jobs, files) = (jobs.clone(), files.clone());
-        tokio::task::spawn_blocking(move || recover(jobs.as_ref(), files.as_ref()))
-            .await
-            .map_err(|e| StoreError::Jobs(e.to_string()))??;
-    }
+        ..
+    } = start_stores(&cfg).await?;
     let listener = tokio::net::TcpListener::bind(&addrs[..])
         .await
         .map_err(|source| ServeError::Listen {
@@ -130,10 +220,12 @@ async fn run(cfg: Config, addrs: Vec<SocketAddr>) -> Result<(), ServeError> {
     let grace = cfg.grace;
     let app: Shared = Arc::new(App::new(cfg, jobs, files));
 
+    relay_store_events(&app);
     for index in 0..workers {
         let thread = worker::JobThread::spawn(index)?;
         tokio::spawn(worker::worker(app.clone(), index, thread));
     }
+    tokio::spawn(leases(app.clone()));
     tokio::spawn(reaper(app.clone()));
     tokio::spawn(super::callback::dispatch(app.clone()));
 
@@ -170,7 +262,11 @@ async fn run(cfg: Config, addrs: Vec<SocketAddr>) -> Result<(), ServeError> {
 
 /// Stops accepting, lets running jobs finish within `grace`, and puts the
 /// rest back in the queue (queued jobs stay queued: the store keeps them).
-async fn shutdown(app: Shared, stop_http: tokio::sync::oneshot::Sender<()>, grace: Duration) {
+pub(super) async fn shutdown(
+    app: Shared,
+    stop_http: tokio::sync::oneshot::Sender<()>,
+    grace: Duration,
+) {
     let deadline = tokio::time::Instant::now() + grace;
     tracing::info!(grace_s = grace.as_secs(), "shutting down");
     app.accepting.store(false, Ordering::Release);
@@ -181,18 +277,21 @@ async fn shutdown(app: Shared, stop_http: tokio::sync::oneshot::Sender<()>, grac
     {
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
-    let left: Vec<String> = {
+    let left: Vec<(String, String)> = {
         let running = app.running();
-        for flag in running.values() {
-            flag.store(SHUTTING_DOWN, Ordering::Release);
+        for r in running.values() {
+            r.flag.store(SHUTTING_DOWN, Ordering::Release);
         }
-        running.keys().cloned().collect()
+        running
+            .iter()
+            .map(|(id, r)| (id.clone(), r.worker.clone()))
+            .collect()
     };
     if !left.is_empty() {
         let jobs = app.jobs.clone();
         let requeued = tokio::task::spawn_blocking(move || {
             left.iter()
-                .filter(|id| jobs.requeue(id).unwrap_or(false))
+                .filter(|(id, worker)| jobs.requeue(id, worker).unwrap_or(false))
                 .count()
         })
         .await
@@ -202,7 +301,7 @@ async fn shutdown(app: Shared, stop_http: tokio::sync::oneshot::Sender<()>, grac
     tracing::info!("stopped");
 }
 
-async fn shutdown_signal() {
+pub(super) async fn shutdown_signal() {
     #[cfg(unix)]
     {
         use tokio::signal::unix::{signal, SignalKind};

@@ -8,8 +8,8 @@ use std::sync::Mutex;
 
 use rusqlite::{params, Connection, OptionalExtension, Transaction};
 
-use super::job::{Callback, Job, JobState, Progress};
-use super::store::{JobStore, StoreError, Submitted};
+use super::job::{Callback, Job, JobState};
+use super::store::{JobStore, Lease, Reclaimed, StoreError, Submitted};
 
 pub struct SqliteJobStore {
     conn: Mutex<Connection>,
@@ -38,6 +38,13 @@ CREATE TABLE IF NOT EXISTS callbacks (
 );
 ";
 
+/// Columns added since the first schema, for stores made before them.
+const ADDED_COLUMNS: [(&str, &str); 2] = [
+    // The worker holding a running job, and until when (see `store::Lease`).
+    ("lease_owner", "TEXT"),
+    ("lease_until", "INTEGER"),
+];
+
 fn db_err(e: rusqlite::Error) -> StoreError {
     match e.sqlite_error_code() {
         Some(rusqlite::ErrorCode::DiskFull) => StoreError::Full(e.to_string()),
@@ -55,6 +62,7 @@ impl SqliteJobStore {
         conn.busy_timeout(std::time::Duration::from_secs(10))
             .map_err(db_err)?;
         conn.execute_batch(SCHEMA).map_err(db_err)?;
+        add_columns(&conn)?;
         Ok(SqliteJobStore {
             conn: Mutex::new(conn),
         })
@@ -74,6 +82,24 @@ impl SqliteJobStore {
         tx.commit().map_err(db_err)?;
         Ok(out)
     }
+}
+
+fn add_columns(conn: &Connection) -> Result<(), StoreError> {
+    let mut stmt = conn
+        .prepare("SELECT name FROM pragma_table_info('jobs')")
+        .map_err(db_err)?;
+    let have: Vec<String> = stmt
+        .query_map([], |r| r.get(0))
+        .map_err(db_err)?
+        .collect::<Result<_, _>>()
+        .map_err(db_err)?;
+    for (name, ty) in ADDED_COLUMNS {
+        if !have.iter().any(|h| h == name) {
+            conn.execute_batch(&format!("ALTER TABLE jobs ADD COLUMN {name} {ty}"))
+                .map_err(db_err)?;
+        }
+    }
+    Ok(())
 }
 
 fn decode(seq: i64, id: &str, data: &str) -> Result<Job, StoreError> {
@@ -121,6 +147,19 @@ fn load(tx: &Transaction<'_>, id: &str) -> Result<Option<Job>, StoreError> {
             .into_iter()
             .next(),
     )
+}
+
+/// Whether job `id` is running under `worker`'s lease.
+fn holds(tx: &Transaction<'_>, id: &str, worker: Option<&str>) -> Result<bool, StoreError> {
+    let row: Option<(String, Option<String>)> = tx
+        .query_row(
+            "SELECT state, lease_owner FROM jobs WHERE id = ?1",
+            [id],
+            |r| Ok((r.get(0)?, r.get(1)?)),
+        )
+        .optional()
+        .map_err(db_err)?;
+    Ok(matches!(row, Some((state, owner)) if state == "running" && owner.as_deref() == worker))
 }
 
 fn store(tx: &Transaction<'_>, job: &Job) -> Result<(), StoreError> {
@@ -216,7 +255,7 @@ impl JobStore for SqliteJobStore {
         })
     }
 
-    fn claim(&self, now_ms: u64) -> Result<Option<Job>, StoreError> {
+    fn claim(&self, lease: &Lease<'_>, now_ms: u64) -> Result<Option<Job>, StoreError> {
         self.with(|tx| {
             let next = query_jobs(
                 tx,
@@ -226,25 +265,33 @@ impl JobStore for SqliteJobStore {
             let Some(mut job) = next.into_iter().next() else {
                 return Ok(None);
             };
-            job.state = JobState::Running;
-            job.started_ms = Some(now_ms);
-            job.attempts += 1;
-            job.progress = Progress::at("load", 0.0);
-            job.timings_ms.queued = Some(now_ms.saturating_sub(job.created_ms));
+            job.start(lease.worker, now_ms);
             store(tx, &job)?;
+            tx.execute(
+                "UPDATE jobs SET lease_owner = ?2, lease_until = ?3 WHERE id = ?1",
+                params![job.id, lease.worker, lease.until_ms as i64],
+            )
+            .map_err(db_err)?;
             Ok(Some(job))
+        })
+    }
+
+    fn renew(&self, id: &str, lease: &Lease<'_>) -> Result<bool, StoreError> {
+        self.with(|tx| {
+            let n = tx
+                .execute(
+                    "UPDATE jobs SET lease_until = ?3
+                     WHERE id = ?1 AND state = 'running' AND lease_owner = ?2",
+                    params![id, lease.worker, lease.until_ms as i64],
+                )
+                .map_err(db_err)?;
+            Ok(n == 1)
         })
     }
 
     fn update_running(&self, job: &Job) -> Result<bool, StoreError> {
         self.with(|tx| {
-            let state: Option<String> = tx
-                .query_row("SELECT state FROM jobs WHERE id = ?1", [&job.id], |r| {
-                    r.get(0)
-                })
-                .optional()
-                .map_err(db_err)?;
-            if state.as_deref() != Some("running") {
+            if !holds(tx, &job.id, job.worker.as_deref())? {
                 return Ok(false);
             }
             store(tx, job)?;
@@ -260,25 +307,21 @@ impl JobStore for SqliteJobStore {
             if job.state.is_terminal() {
                 return Ok(None);
             }
-            job.state = JobState::Canceled;
-            job.finished_ms = Some(now_ms);
-            job.progress = Progress::at("done", job.progress.fraction);
+            job.cancel(now_ms);
             store(tx, &job)?;
             Ok(Some(job))
         })
     }
 
-    fn requeue(&self, id: &str) -> Result<bool, StoreError> {
+    fn requeue(&self, id: &str, worker: &str) -> Result<bool, StoreError> {
         self.with(|tx| {
+            if !holds(tx, id, Some(worker))? {
+                return Ok(false);
+            }
             let Some(mut job) = load(tx, id)? else {
                 return Ok(false);
             };
-            if job.state != JobState::Running {
-                return Ok(false);
-            }
-            job.state = JobState::Queued;
-            job.started_ms = None;
-            job.progress = Progress::at("queued", 0.0);
+            job.requeue();
             // The interrupted attempt was not the job's fault.
             job.attempts = job.attempts.saturating_sub(1);
             store(tx, &job)?;
@@ -286,40 +329,29 @@ impl JobStore for SqliteJobStore {
         })
     }
 
-    fn recover(
+    fn reclaim(
         &self,
+        expired_before_ms: u64,
         max_attempts: u32,
         now_ms: u64,
-    ) -> Result<(Vec<String>, Vec<String>), StoreError> {
+    ) -> Result<Reclaimed, StoreError> {
         self.with(|tx| {
-            let running = query_jobs(
+            let expired = query_jobs(
                 tx,
-                "SELECT seq, id, data FROM jobs WHERE state = 'running' ORDER BY seq",
-                [],
+                "SELECT seq, id, data FROM jobs
+                 WHERE state = 'running' AND COALESCE(lease_until, 0) < ?1 ORDER BY seq",
+                [expired_before_ms.min(i64::MAX as u64) as i64],
             )?;
-            let (mut requeued, mut failed) = (Vec::new(), Vec::new());
-            for mut job in running {
-                if job.attempts >= max_attempts {
-                    job.state = JobState::Failed;
-                    job.finished_ms = Some(now_ms);
-                    job.progress = Progress::at("done", job.progress.fraction);
-                    job.error = Some(super::job::JobError {
-                        code: "interrupted".into(),
-                        message: format!(
-                            "the server stopped during each of {} attempts",
-                            job.attempts
-                        ),
-                    });
-                    failed.push(job.id.clone());
+            let mut out = Reclaimed::default();
+            for mut job in expired {
+                if job.reclaim(max_attempts, now_ms) {
+                    out.requeued.push(job.clone());
                 } else {
-                    job.state = JobState::Queued;
-                    job.started_ms = None;
-                    job.progress = Progress::at("queued", 0.0);
-                    requeued.push(job.id.clone());
+                    out.failed.push(job.clone());
                 }
                 store(tx, &job)?;
             }
-            Ok((requeued, failed))
+            Ok(out)
         })
     }
 

@@ -2,12 +2,19 @@
 //!
 //! Routes and workers see only [`JobStore`] and [`FileStore`]. The embedded
 //! implementations ([`super::sqlite::SqliteJobStore`],
-//! [`super::files::LocalFileStore`]) serve one process; a PostgreSQL queue
-//! (claims with `FOR UPDATE SKIP LOCKED`, shared by several servers) and an
-//! S3-compatible object store fit the same traits. Calls block: the service
-//! makes them from blocking threads, never on the async runtime.
+//! [`super::files::LocalFileStore`]) serve one process; the cluster's
+//! ([`super::postgres::PgJobStore`], [`super::objects::ObjectFileStore`])
+//! are shared by any number of API servers and workers. Calls block: the
+//! service makes them from blocking threads, never on the async runtime.
+//!
+//! A running job is held by one worker under a lease: the worker renews it
+//! while it runs, and a job whose lease ran out (its worker died, or lost
+//! the store) goes back to the queue. Every write a worker makes to a
+//! running job names the worker, so a worker whose job was taken from it
+//! can no longer change it.
 
 use std::collections::BTreeMap;
+use std::sync::Arc;
 
 use super::job::{Job, JobState};
 
@@ -68,31 +75,38 @@ pub trait JobStore: Send + Sync + 'static {
     /// A succeeded job of `owner` with this input key, whose files can be reused.
     fn find_succeeded(&self, owner: &str, input_key: &str) -> Result<Option<Job>, StoreError>;
 
-    /// Moves the oldest queued job to `running` (counting the attempt) and
-    /// returns it; `None` when nothing is queued.
-    fn claim(&self, now_ms: u64) -> Result<Option<Job>, StoreError>;
+    /// Moves the oldest queued job to `running` (counting the attempt)
+    /// under `lease`, and returns it with `job.worker` set; `None` when
+    /// nothing is queued. Concurrent claims never take one job twice.
+    fn claim(&self, lease: &Lease<'_>, now_ms: u64) -> Result<Option<Job>, StoreError>;
+
+    /// Extends the lease that `lease.worker` holds on job `id`. False when
+    /// the worker no longer holds it (canceled, deleted, or reclaimed).
+    fn renew(&self, id: &str, lease: &Lease<'_>) -> Result<bool, StoreError>;
 
     /// Replaces a running job's record (progress, or its final state).
-    /// Returns false, changing nothing, if the job is no longer running
-    /// (canceled or timed out meanwhile).
+    /// Returns false, changing nothing, unless the job is still running
+    /// under `job.worker` (canceled, timed out or reclaimed meanwhile).
     fn update_running(&self, job: &Job) -> Result<bool, StoreError>;
 
     /// Cancels a queued or running job; returns it as it is now, or `None`
     /// if it was not queued or running.
     fn cancel(&self, id: &str, now_ms: u64) -> Result<Option<Job>, StoreError>;
 
-    /// Puts a running job back in the queue (shutdown).
-    fn requeue(&self, id: &str) -> Result<bool, StoreError>;
+    /// Puts a job that `worker` is running back in the queue (shutdown);
+    /// the interrupted attempt is not counted.
+    fn requeue(&self, id: &str, worker: &str) -> Result<bool, StoreError>;
 
-    /// After a restart: every job left running goes back to the queue, or
-    /// fails if it has already been started `max_attempts` times (a job
-    /// that kills the server must not do so forever). Returns the re-queued
-    /// and the failed ids.
-    fn recover(
+    /// Jobs whose lease ran out before `expired_before_ms` go back to the
+    /// queue, their attempt counted, or fail if they have already been
+    /// started `max_attempts` times (a job that kills its worker must not
+    /// do so forever).
+    fn reclaim(
         &self,
+        expired_before_ms: u64,
         max_attempts: u32,
         now_ms: u64,
-    ) -> Result<(Vec<String>, Vec<String>), StoreError>;
+    ) -> Result<Reclaimed, StoreError>;
 
     fn delete(&self, id: &str) -> Result<(), StoreError>;
     /// Finished jobs whose callback is due at `now_ms`, oldest due first.
@@ -110,6 +124,42 @@ pub trait JobStore: Send + Sync + 'static {
     fn expired(&self, before_ms: u64, limit: usize) -> Result<Vec<Job>, StoreError>;
 
     fn counts(&self) -> Result<BTreeMap<JobState, u64>, StoreError>;
+
+    /// Whether the store answers (`/readyz`).
+    fn check(&self) -> Result<(), StoreError> {
+        Ok(())
+    }
+
+    /// Calls `on` when any process sharing the store queues a job or
+    /// finishes one, so that idle workers and `Prefer: wait` need not poll.
+    /// A store only one process uses has nothing to tell.
+    fn listen(&self, on: Arc<dyn Fn(StoreEvent) + Send + Sync>) {
+        let _ = on;
+    }
+}
+
+/// A worker's hold on a running job.
+#[derive(Debug, Clone, Copy)]
+pub struct Lease<'a> {
+    /// The worker's name, unique among every process on the store.
+    pub worker: &'a str,
+    /// Until when the job is the worker's, unless renewed.
+    pub until_ms: u64,
+}
+
+/// What [`JobStore::reclaim`] did: the jobs as they were stored (their
+/// `worker` is the one whose lease ran out).
+#[derive(Debug, Default)]
+pub struct Reclaimed {
+    pub requeued: Vec<Job>,
+    pub failed: Vec<Job>,
+}
+
+/// What [`JobStore::listen`] reports.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StoreEvent {
+    Queued,
+    Finished,
 }
 
 /// Durable named blobs. Keys are `/`-separated relative paths. A `put` is
@@ -128,6 +178,18 @@ pub trait FileStore: Send + Sync + 'static {
 
     /// Names directly under `prefix` (one level, no recursion).
     fn list(&self, prefix: &str) -> Result<Vec<String>, StoreError>;
+
+    /// Whether the store answers (`/readyz`).
+    fn check(&self) -> Result<(), StoreError> {
+        Ok(())
+    }
+
+    /// A URL a client may fetch the blob from directly for `ttl`, where the
+    /// store can sign one (`?redirect=1`).
+    fn presign(&self, key: &str, ttl: std::time::Duration) -> Result<Option<String>, StoreError> {
+        let _ = (key, ttl);
+        Ok(None)
+    }
 }
 
 /// Where a job's files live in the [`FileStore`].

@@ -11,12 +11,12 @@ use sha2::{Digest, Sha256};
 use tokio::sync::oneshot;
 use tracing::Instrument;
 
-use super::app::{stop_of, Shared, RUN, TIMED_OUT};
+use super::app::{stop_of, Running, Shared, CANCELED, RUN, TIMED_OUT};
 use super::config::hex;
 use super::engine::{EngineError, Stop};
 use super::isolate::{self, Isolation};
 use super::job::{now_ms, FileEntry, Job, JobError, JobState, Progress};
-use super::store::{keys, StoreError};
+use super::store::{keys, Lease, StoreError};
 use crate::budget::Limits;
 
 /// A job that has been started this many times without finishing (each
@@ -72,6 +72,7 @@ impl JobThread {
 }
 
 pub async fn worker(app: Shared, index: usize, thread: JobThread) {
+    let name = app.worker_name(index);
     let mut stopping = app.stopping.subscribe();
     // Whether jobs have run since this worker last handed freed memory back.
     let mut used = false;
@@ -79,11 +80,20 @@ pub async fn worker(app: Shared, index: usize, thread: JobThread) {
         if app.is_stopping() {
             return;
         }
-        let store = app.jobs.clone();
-        let claimed = tokio::task::spawn_blocking(move || store.claim(now_ms())).await;
+        let (store, worker, lease) = (app.jobs.clone(), name.clone(), app.lease());
+        let claimed = tokio::task::spawn_blocking(move || {
+            let now = now_ms();
+            let lease = Lease {
+                worker: &worker,
+                until_ms: now + lease.as_millis() as u64,
+            };
+            store.claim(&lease, now)
+        })
+        .await;
         match claimed {
             Ok(Ok(Some(job))) => {
-                run(&app, job, &thread).await;
+                app.metrics.claimed(&name);
+                run(&app, job, &name, &thread).await;
                 used = true;
             }
             Ok(Ok(None)) => {
@@ -112,12 +122,24 @@ pub async fn worker(app: Shared, index: usize, thread: JobThread) {
     }
 }
 
-async fn run(app: &Shared, job: Job, thread: &JobThread) {
+async fn run(app: &Shared, job: Job, worker: &str, thread: &JobThread) {
     let id = job.id.clone();
-    let span = tracing::info_span!("job", job_id = %id);
+    let span = tracing::info_span!("job", job_id = %id, worker);
     async {
         let flag = Arc::new(AtomicU8::new(RUN));
-        app.running().insert(id.clone(), flag.clone());
+        app.running().insert(
+            id.clone(),
+            Running {
+                flag: flag.clone(),
+                worker: worker.to_string(),
+            },
+        );
+        let heartbeat = tokio::spawn(keep_lease(
+            app.clone(),
+            id.clone(),
+            worker.to_string(),
+            flag.clone(),
+        ));
         app.metrics.busy_workers.fetch_add(1, Ordering::Relaxed);
         if let Some(q) = job.timings_ms.queued {
             app.metrics.stage("queued", q);
@@ -170,12 +192,45 @@ async fn run(app: &Shared, job: Job, thread: &JobThread) {
                 }
             }
         }
+        heartbeat.abort();
         app.running().remove(&id);
         app.metrics.busy_workers.fetch_sub(1, Ordering::Relaxed);
         app.announce_finished();
     }
     .instrument(span)
     .await
+}
+
+/// Renews the lease on a running job every third of its length, so that
+/// it outlives any one stage. A renewal the store refuses means the job was
+/// canceled (perhaps through another server) or given to another worker:
+/// the job stops at its next checkpoint.
+async fn keep_lease(app: Shared, id: String, worker: String, flag: Arc<AtomicU8>) {
+    let every = app.lease() / 3;
+    loop {
+        tokio::time::sleep(every).await;
+        let (store, job, name, lease) = (app.jobs.clone(), id.clone(), worker.clone(), app.lease());
+        let renewed = tokio::task::spawn_blocking(move || {
+            let lease = Lease {
+                worker: &name,
+                until_ms: now_ms() + lease.as_millis() as u64,
+            };
+            store.renew(&job, &lease)
+        })
+        .await;
+        match renewed {
+            Ok(Ok(true)) => {}
+            Ok(Ok(false)) => {
+                tracing::info!("lease refused: the job was canceled or reclaimed");
+                let _ = flag.compare_exchange(RUN, CANCELED, Ordering::AcqRel, Ordering::Acquire);
+                return;
+            }
+            // The store is unreachable: keep running, and keep trying; if
+            // the lease runs out meanwhile, the store refuses the results.
+            Ok(Err(e)) => tracing::warn!(error = %e, "cannot renew the lease"),
+            Err(e) => tracing::warn!(error = %e, "lease task failed"),
+        }
+    }
 }
 
 async fn time_out(app: &Shared, mut job: Job) {
@@ -392,7 +447,8 @@ fn fail(
 fn stopped(app: &Shared, job: Job, stop: Stop) -> Result<JobState, StoreError> {
     match stop {
         Stop::ShuttingDown => {
-            app.jobs.requeue(&job.id)?;
+            app.jobs
+                .requeue(&job.id, job.worker.as_deref().unwrap_or_default())?;
             tracing::info!("job re-queued for the next start");
             Ok(JobState::Queued)
         }
