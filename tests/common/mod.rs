@@ -2,6 +2,7 @@
 //! against, and a running server. (Each test file uses some of it.)
 #![allow(dead_code)]
 
+pub mod cluster;
 pub mod server;
 
 use std::path::{Path, PathBuf};
