@@ -16,9 +16,9 @@ use std::time::{Duration, Instant};
 
 use serde_json::{json, Value};
 
-#[path = "../tests/common/server.rs"]
-mod server;
-use server::Server;
+#[path = "../tests/common/mod.rs"]
+mod common;
+use common::server::Server;
 
 const CLIENTS: usize = 16;
 const PHASE_LIMIT: Duration = Duration::from_secs(600);

@@ -1245,4 +1245,27 @@ async fn downloads_resume_with_byte_ranges() {
     let r = get("bytes=0-9", Some("\"other\"")).await.unwrap();
     assert_eq!(r.status(), StatusCode::OK);
     assert_eq!(r.bytes().await.unwrap().len(), len);
+
+    // `redirect=1`: an object store signs a URL to itself, which serves the
+    // same bytes to a client without the store's credentials; a folder
+    // store serves the file as before.
+    let no_redirects = Client::builder()
+        .redirect(reqwest::redirect::Policy::none())
+        .build()
+        .unwrap();
+    let r = no_redirects
+        .get(format!("{url}?redirect=1"))
+        .send()
+        .await
+        .unwrap();
+    if common::server::on_cluster() {
+        assert_eq!(r.status(), StatusCode::TEMPORARY_REDIRECT);
+        let signed = r.headers()["location"].to_str().unwrap().to_string();
+        let direct = reqwest::get(&signed).await.unwrap();
+        assert_eq!(direct.status(), StatusCode::OK, "{signed}");
+        assert!(direct.bytes().await.unwrap() == whole);
+    } else {
+        assert_eq!(r.status(), StatusCode::OK);
+        assert!(r.bytes().await.unwrap() == whole);
+    }
 }

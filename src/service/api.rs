@@ -37,7 +37,7 @@ pub fn routes() -> Vec<(Method, &'static str, MethodRouter<Shared>)> {
         (Method::GET, "/v1/jobs", get(list_jobs)),
         (Method::GET, "/v1/jobs/{id}", get(get_job)),
         (Method::DELETE, "/v1/jobs/{id}", delete(delete_job)),
-        (Method::GET, "/v1/jobs/{id}/files/{*name}", get(get_file)),
+        (Method::GET, "/v1/jobs/{id}/files/{*name}", get(super::download::get_file)),
         (Method::GET, "/healthz", get(healthz)),
         (Method::GET, "/readyz", get(readyz)),
         (Method::GET, "/metrics", get(metrics)),
@@ -151,7 +151,7 @@ async fn json_error(resp: Response) -> Response {
 
 /// The owner the request acts for: its token's, or everyone's when the
 /// server has no tokens (it then listens on loopback only, unless told).
-fn caller(app: &Shared, headers: &HeaderMap) -> Result<String, ApiError> {
+pub(super) fn caller(app: &Shared, headers: &HeaderMap) -> Result<String, ApiError> {
     if app.cfg.tokens.is_empty() {
         return Ok(String::new());
     }
@@ -202,7 +202,7 @@ async fn load_job(app: &Shared, id: &str) -> Result<Option<Job>, ApiError> {
 }
 
 /// The job if it exists and belongs to `owner`; others' jobs do not exist.
-async fn owned_job(app: &Shared, id: &str, owner: &str) -> Result<Job, ApiError> {
+pub(super) async fn owned_job(app: &Shared, id: &str, owner: &str) -> Result<Job, ApiError> {
     if !is_job_id(id) {
         return Err(ApiError::job_not_found());
     }
@@ -772,156 +772,6 @@ async fn delete_job(
     Ok(StatusCode::NO_CONTENT.into_response())
 }
 
-fn etag_matches(headers: &HeaderMap, etag: &str) -> bool {
-    headers
-        .get_all(header::IF_NONE_MATCH)
-        .iter()
-        .filter_map(|v| v.to_str().ok())
-        .flat_map(|v| v.split(','))
-        .map(str::trim)
-        .any(|t| t == "*" || t == etag || t.strip_prefix("W/") == Some(etag))
-}
-
-/// What a `Range` header asks of a file of `len` bytes.
-#[derive(Debug, PartialEq, Eq)]
-enum Span {
-    Whole,
-    /// First and last byte, inclusive.
-    Part(u64, u64),
-    Unsatisfiable,
-}
-
-/// One byte range (`bytes=a-b`, `bytes=a-`, `bytes=-n`) is served; a header
-/// that is malformed or asks for several ranges gets the whole file, as
-/// RFC 9110 lets a server do.
-fn byte_range(header: Option<&str>, len: u64) -> Span {
-    let Some(spec) = header.and_then(|h| h.trim().strip_prefix("bytes=")) else {
-        return Span::Whole;
-    };
-    if spec.contains(',') {
-        return Span::Whole;
-    }
-    let Some((a, b)) = spec.trim().split_once('-') else {
-        return Span::Whole;
-    };
-    let num = |t: &str| -> Option<u64> {
-        (!t.is_empty() && t.bytes().all(|c| c.is_ascii_digit()))
-            .then(|| t.parse().ok())
-            .flatten()
-    };
-    let (first, last) = match (num(a.trim()), num(b.trim())) {
-        (Some(first), Some(last)) if first <= last => (first, last.min(len.saturating_sub(1))),
-        (Some(first), None) if b.trim().is_empty() => (first, len.saturating_sub(1)),
-        (None, Some(suffix)) if a.trim().is_empty() => {
-            if suffix == 0 {
-                return Span::Unsatisfiable;
-            }
-            (len.saturating_sub(suffix), len.saturating_sub(1))
-        }
-        _ => return Span::Whole,
-    };
-    if len == 0 || first >= len {
-        return Span::Unsatisfiable;
-    }
-    Span::Part(first, last)
-}
-
-async fn get_file(
-    State(app): State<Shared>,
-    Path((id, name)): Path<(String, String)>,
-    headers: HeaderMap,
-) -> Result<Response, ApiError> {
-    let owner = caller(&app, &headers)?;
-    let job = owned_job(&app, &id, &owner).await?;
-    if job.state != JobState::Succeeded {
-        return Err(ApiError::new(
-            StatusCode::CONFLICT,
-            "job_not_succeeded",
-            format!("the job is {}: it has no files", job.state.as_str()),
-        ));
-    }
-    let entry = job
-        .files
-        .iter()
-        .find(|f| f.name == name)
-        .cloned()
-        .ok_or_else(|| ApiError::not_found("the job has no such file"))?;
-    let etag = format!("\"{}\"", entry.sha256);
-    let mut resp = if etag_matches(&headers, &etag) {
-        StatusCode::NOT_MODIFIED.into_response()
-    } else {
-        let jid = job.id.clone();
-        let fname = entry.name.clone();
-        let bytes = blocking(&app, move |a| {
-            Ok(a.files.get(&keys::output(&jid, &fname))?)
-        })
-        .await?
-        .ok_or_else(|| {
-            tracing::error!(job_id = %job.id, file = %entry.name, "result file missing");
-            ApiError::internal("the file is missing from the file store")
-        })?;
-        let len = bytes.len() as u64;
-        // A Range for another version of the file (If-Range) gets it whole.
-        let if_range_ok = headers
-            .get(header::IF_RANGE)
-            .is_none_or(|v| v.to_str().is_ok_and(|v| v.trim() == etag));
-        let range = headers
-            .get(header::RANGE)
-            .and_then(|v| v.to_str().ok())
-            .filter(|_| if_range_ok);
-        let mut r = match byte_range(range, len) {
-            Span::Whole => {
-                let mut r = bytes.into_response();
-                if let Ok(v) = HeaderValue::from_str(&entry.content_type) {
-                    r.headers_mut().insert(header::CONTENT_TYPE, v);
-                }
-                r
-            }
-            // A piece of a file is bytes, whatever the whole is: a piece of
-            // report.json is not JSON.
-            Span::Part(first, last) => {
-                let part = bytes[first as usize..=last as usize].to_vec();
-                let mut r = (StatusCode::PARTIAL_CONTENT, part).into_response();
-                if let Ok(v) = HeaderValue::from_str(&format!("bytes {first}-{last}/{len}")) {
-                    r.headers_mut().insert(header::CONTENT_RANGE, v);
-                }
-                r
-            }
-            Span::Unsatisfiable => {
-                let mut r = ApiError::new(
-                    StatusCode::RANGE_NOT_SATISFIABLE,
-                    "range_not_satisfiable",
-                    format!("the file holds {len} bytes"),
-                )
-                .into_response();
-                if let Ok(v) = HeaderValue::from_str(&format!("bytes */{len}")) {
-                    r.headers_mut().insert(header::CONTENT_RANGE, v);
-                }
-                return Ok(r);
-            }
-        };
-        app.metrics.bytes_out.fetch_add(
-            r.headers()
-                .get(header::CONTENT_LENGTH)
-                .and_then(|v| v.to_str().ok()?.parse().ok())
-                .unwrap_or(len),
-            Ordering::Relaxed,
-        );
-        r.headers_mut()
-            .insert(header::ACCEPT_RANGES, HeaderValue::from_static("bytes"));
-        r
-    };
-    let h = resp.headers_mut();
-    if let Ok(v) = HeaderValue::from_str(&etag) {
-        h.insert(header::ETAG, v);
-    }
-    h.insert(
-        header::CACHE_CONTROL,
-        HeaderValue::from_static("private, max-age=31536000, immutable"),
-    );
-    Ok(resp)
-}
-
 pub(super) async fn healthz() -> Response {
     Json(json!({ "status": "ok" })).into_response()
 }
@@ -996,30 +846,4 @@ mod tests {
         assert!(parse_query(None).unwrap().1.name.is_none());
     }
 
-    #[test]
-    fn byte_ranges() {
-        assert_eq!(byte_range(None, 10), Span::Whole);
-        assert_eq!(byte_range(Some("bytes=0-3"), 10), Span::Part(0, 3));
-        assert_eq!(byte_range(Some("bytes=4-"), 10), Span::Part(4, 9));
-        assert_eq!(byte_range(Some("bytes=-3"), 10), Span::Part(7, 9));
-        assert_eq!(byte_range(Some("bytes=8-100"), 10), Span::Part(8, 9));
-        assert_eq!(byte_range(Some("bytes=-100"), 10), Span::Part(0, 9));
-        assert_eq!(byte_range(Some("bytes=10-"), 10), Span::Unsatisfiable);
-        assert_eq!(byte_range(Some("bytes=-0"), 10), Span::Unsatisfiable);
-        assert_eq!(byte_range(Some("bytes=0-1,4-5"), 10), Span::Whole);
-        assert_eq!(byte_range(Some("bytes=5-2"), 10), Span::Whole);
-        assert_eq!(byte_range(Some("items=0-1"), 10), Span::Whole);
-        assert_eq!(byte_range(Some("bytes=x-1"), 10), Span::Whole);
-    }
-
-    #[test]
-    fn etags() {
-        let mut h = HeaderMap::new();
-        h.insert(
-            header::IF_NONE_MATCH,
-            HeaderValue::from_static("\"a\", \"b\""),
-        );
-        assert!(etag_matches(&h, "\"b\""));
-        assert!(!etag_matches(&h, "\"c\""));
-    }
 }

@@ -116,6 +116,19 @@ impl FileStore for LocalFileStore {
         }
     }
 
+    fn read_range(&self, key: &str, range: std::ops::Range<u64>) -> Result<Vec<u8>, StoreError> {
+        use std::io::{Read, Seek, SeekFrom};
+        let path = self.path(key)?;
+        let mut file = File::open(&path).map_err(|e| io_err("cannot read", &path, e))?;
+        file.seek(SeekFrom::Start(range.start))
+            .map_err(|e| io_err("cannot read", &path, e))?;
+        let mut bytes = Vec::new();
+        file.take(range.end.saturating_sub(range.start))
+            .read_to_end(&mut bytes)
+            .map_err(|e| io_err("cannot read", &path, e))?;
+        Ok(bytes)
+    }
+
     fn copy(&self, from: &str, to: &str) -> Result<(), StoreError> {
         let src = self.path(from)?;
         let dst = self.path(to)?;
@@ -179,6 +192,8 @@ mod tests {
         assert!(!root.join("jobs/x/.a.1234abcd.partial").exists());
         s.put("jobs/x/out/a.dds", b"hello").unwrap();
         assert_eq!(s.get("jobs/x/out/a.dds").unwrap().unwrap(), b"hello");
+        assert_eq!(s.read_range("jobs/x/out/a.dds", 1..3).unwrap(), b"el");
+        assert_eq!(s.read_range("jobs/x/out/a.dds", 3..99).unwrap(), b"lo");
         s.copy("jobs/x/out/a.dds", "jobs/y/out/a.dds").unwrap();
         assert_eq!(s.list("jobs").unwrap(), vec!["x", "y"]);
         s.delete_prefix("jobs/x").unwrap();

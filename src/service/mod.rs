@@ -15,6 +15,7 @@ mod app;
 pub mod callback;
 pub mod config;
 mod data_dir;
+mod download;
 mod engine;
 mod error;
 pub mod files;

@@ -115,6 +115,19 @@ impl FileStore for ObjectFileStore {
         })
     }
 
+    fn read_range(&self, key: &str, range: std::ops::Range<u64>) -> Result<Vec<u8>, StoreError> {
+        let path = self.path(key)?;
+        self.rt.block_on(async {
+            let size = self.s3.head(&path).await.map_err(obj_err)?.size;
+            let range = range.start.min(size)..range.end.min(size);
+            if range.is_empty() {
+                return Ok(Vec::new());
+            }
+            let bytes = self.s3.get_range(&path, range).await.map_err(obj_err)?;
+            Ok(bytes.to_vec())
+        })
+    }
+
     fn copy(&self, from: &str, to: &str) -> Result<(), StoreError> {
         let (from, to) = (self.path(from)?, self.path(to)?);
         self.rt

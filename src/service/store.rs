@@ -169,6 +169,10 @@ pub trait FileStore: Send + Sync + 'static {
 
     fn get(&self, key: &str) -> Result<Option<Vec<u8>>, StoreError>;
 
+    /// Bytes `range` of a blob (fewer where the blob ends first), so that
+    /// a large blob can be served a piece at a time.
+    fn read_range(&self, key: &str, range: std::ops::Range<u64>) -> Result<Vec<u8>, StoreError>;
+
     /// Copies a blob (the local store links it, an object store would copy
     /// server-side).
     fn copy(&self, from: &str, to: &str) -> Result<(), StoreError>;
