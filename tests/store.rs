@@ -1,0 +1,259 @@
+//! The job store's contract, on both implementations: the embedded SQLite
+//! store, and PostgreSQL (a server started here; several store handles on
+//! it stand for several processes of a cluster). Claims under contention,
+//! leases that run out, a worker whose job was taken from it, the queue
+//! bound and idempotency keys under concurrent submissions.
+
+use std::collections::BTreeSet;
+use std::sync::{Arc, Barrier, OnceLock};
+use std::thread;
+
+use serde_json::json;
+
+use seamstress::service::job::{Job, JobState};
+use seamstress::service::postgres::PgJobStore;
+use seamstress::service::sqlite::SqliteJobStore;
+use seamstress::service::store::{JobStore, Lease, Submitted};
+
+mod common;
+use common::cluster::Postgres;
+
+/// One PostgreSQL server for the file, a database per store; and a runtime
+/// for its connections.
+fn postgres() -> Option<&'static (Postgres, tokio::runtime::Runtime)> {
+    static PG: OnceLock<Option<(Postgres, tokio::runtime::Runtime)>> = OnceLock::new();
+    PG.get_or_init(|| {
+        let pg = Postgres::start()?;
+        let rt = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .enable_all()
+            .build()
+            .unwrap();
+        Some((pg, rt))
+    })
+    .as_ref()
+}
+
+/// Handles on one fresh store: `n` for PostgreSQL (each its own pool, as
+/// processes have), the same one `n` times for SQLite (one process).
+fn stores(kind: &str, name: &str, n: usize) -> Option<Vec<Arc<dyn JobStore>>> {
+    match kind {
+        "sqlite" => {
+            let dir = std::env::temp_dir()
+                .join(format!("seamstress-store-{}-{name}", std::process::id()));
+            let _ = std::fs::remove_dir_all(&dir);
+            std::fs::create_dir_all(&dir).unwrap();
+            let s: Arc<dyn JobStore> =
+                Arc::new(SqliteJobStore::open(&dir.join("jobs.db")).unwrap());
+            Some(vec![s; n])
+        }
+        _ => {
+            let (pg, rt) = postgres()?;
+            let url = pg.new_database(name);
+            Some(
+                (0..n)
+                    .map(|_| {
+                        Arc::new(PgJobStore::open(&url, rt.handle().clone()).unwrap())
+                            as Arc<dyn JobStore>
+                    })
+                    .collect(),
+            )
+        }
+    }
+}
+
+fn job(id: &str, key: Option<&str>) -> Job {
+    serde_json::from_value(json!({
+        "id": id,
+        "owner": "",
+        "state": "queued",
+        "input": {"name": "m.glb", "format": "glb", "bytes": 1, "files": []},
+        "input_key": format!("key-{id}"),
+        "idempotency_key": key,
+        "options": serde_json::to_value(seamstress::pipeline::ProcessOptions::service_default()).unwrap(),
+        "created_ms": 1,
+        "started_ms": null,
+        "finished_ms": null,
+        "progress": {"stage": "queued", "fraction": 0.0},
+        "timings_ms": {},
+        "report": null,
+        "error": null,
+        "files": [],
+        "cached_from": null,
+        "attempts": 0,
+        "warnings": []
+    }))
+    .unwrap()
+}
+
+fn lease(worker: &str, until_ms: u64) -> Lease<'_> {
+    Lease { worker, until_ms }
+}
+
+const KINDS: [&str; 2] = ["sqlite", "postgres"];
+
+#[test]
+fn concurrent_claims_take_each_job_once() {
+    for kind in KINDS {
+        let Some(stores) = stores(kind, "claims", 4) else {
+            continue;
+        };
+        let n = 120;
+        for i in 0..n {
+            let s = stores[0]
+                .submit(&job(&format!("j{i:03}"), None), n)
+                .unwrap();
+            assert!(matches!(s, Submitted::Created));
+        }
+        let start = Arc::new(Barrier::new(stores.len()));
+        let takers: Vec<_> = stores
+            .iter()
+            .enumerate()
+            .map(|(w, store)| {
+                let (store, start) = (store.clone(), start.clone());
+                thread::spawn(move || {
+                    let name = format!("w{w}");
+                    start.wait();
+                    let mut got = Vec::new();
+                    while let Some(j) = store.claim(&lease(&name, u64::MAX / 2), 10).unwrap() {
+                        assert_eq!(j.worker.as_deref(), Some(name.as_str()));
+                        got.push(j.id);
+                    }
+                    got
+                })
+            })
+            .collect();
+        let mut all = Vec::new();
+        let mut per_worker = Vec::new();
+        for t in takers {
+            let got = t.join().unwrap();
+            per_worker.push(got.len());
+            all.extend(got);
+        }
+        let distinct: BTreeSet<_> = all.iter().collect();
+        assert_eq!(all.len(), n, "{kind}: {per_worker:?}");
+        assert_eq!(distinct.len(), n, "{kind}: a job was claimed twice");
+        assert_eq!(stores[0].counts().unwrap()[&JobState::Running], n as u64);
+    }
+}
+
+#[test]
+fn a_lease_that_runs_out_gives_the_job_to_another_worker() {
+    for kind in KINDS {
+        let Some(stores) = stores(kind, "leases", 2) else {
+            continue;
+        };
+        let (a, b) = (&stores[0], &stores[1]);
+        a.submit(&job("j1", None), 10).unwrap();
+        let mut first = a.claim(&lease("w1", 1_000), 100).unwrap().unwrap();
+        assert_eq!(first.attempts, 1);
+        assert!(a.renew("j1", &lease("w1", 2_000)).unwrap());
+        // Still held at 1 999; run out at 2 001.
+        assert!(b.reclaim(1_999, 3, 1_999).unwrap().requeued.is_empty());
+        let back = b.reclaim(2_001, 3, 2_001).unwrap();
+        assert_eq!(back.requeued.len(), 1, "{kind}");
+        assert_eq!(back.requeued[0].worker.as_deref(), Some("w1"));
+        // The first worker can no longer touch it.
+        first.progress.fraction = 0.5;
+        assert!(!a.update_running(&first).unwrap(), "{kind}");
+        assert!(!a.renew("j1", &lease("w1", 9_000)).unwrap());
+        assert!(!a.requeue("j1", "w1").unwrap());
+        // Another takes it, the lost attempt counted; its writes hold.
+        let mut second = b.claim(&lease("w2", 10_000), 3_000).unwrap().unwrap();
+        assert_eq!(second.attempts, 2, "{kind}");
+        second.state = JobState::Succeeded;
+        second.finished_ms = Some(4_000);
+        assert!(b.update_running(&second).unwrap());
+        assert!(!a.update_running(&first).unwrap());
+        assert_eq!(a.get("j1").unwrap().unwrap().state, JobState::Succeeded);
+    }
+}
+
+#[test]
+fn a_job_that_keeps_killing_its_worker_fails() {
+    for kind in KINDS {
+        let Some(stores) = stores(kind, "attempts", 1) else {
+            continue;
+        };
+        let s = &stores[0];
+        s.submit(&job("j1", None), 10).unwrap();
+        for t in 0..3u64 {
+            let now = t * 100;
+            s.claim(&lease("w", now + 10), now).unwrap().unwrap();
+            let r = s.reclaim(now + 50, 3, now + 50).unwrap();
+            let failed = t == 2;
+            assert_eq!(
+                (r.requeued.len(), r.failed.len()),
+                (!failed as usize, failed as usize)
+            );
+        }
+        let j = s.get("j1").unwrap().unwrap();
+        assert_eq!(j.state, JobState::Failed, "{kind}");
+        assert_eq!(j.error.unwrap().code, "interrupted");
+    }
+}
+
+#[test]
+fn a_cancel_refuses_the_running_workers_lease() {
+    for kind in KINDS {
+        let Some(stores) = stores(kind, "cancel", 2) else {
+            continue;
+        };
+        stores[0].submit(&job("j1", None), 10).unwrap();
+        let running = stores[0].claim(&lease("w1", 5_000), 0).unwrap().unwrap();
+        let canceled = stores[1].cancel("j1", 10).unwrap().unwrap();
+        assert_eq!(canceled.state, JobState::Canceled);
+        assert!(
+            !stores[0].renew("j1", &lease("w1", 6_000)).unwrap(),
+            "{kind}"
+        );
+        assert!(!stores[0].update_running(&running).unwrap());
+        assert_eq!(
+            stores[0].get("j1").unwrap().unwrap().state,
+            JobState::Canceled
+        );
+    }
+}
+
+#[test]
+fn the_queue_bound_and_idempotency_keys_hold_across_servers() {
+    for kind in KINDS {
+        let Some(stores) = stores(kind, "submits", 4) else {
+            continue;
+        };
+        let limit = 20;
+        let start = Arc::new(Barrier::new(stores.len()));
+        let threads: Vec<_> = stores
+            .iter()
+            .enumerate()
+            .map(|(t, store)| {
+                let (store, start) = (store.clone(), start.clone());
+                thread::spawn(move || {
+                    start.wait();
+                    let mut created = 0;
+                    for i in 0..10 {
+                        let s = store
+                            .submit(&job(&format!("t{t}-{i}"), None), limit)
+                            .unwrap();
+                        created += matches!(s, Submitted::Created) as usize;
+                    }
+                    // Every server takes the same key at once: one job.
+                    let s = store
+                        .submit(&job(&format!("keyed-{t}"), Some("k")), usize::MAX)
+                        .unwrap();
+                    let keyed = match s {
+                        Submitted::Created => format!("keyed-{t}"),
+                        Submitted::Existing(j) => j.id,
+                        Submitted::QueueFull => panic!("no bound on keyed jobs"),
+                    };
+                    (created, keyed)
+                })
+            })
+            .collect();
+        let results: Vec<_> = threads.into_iter().map(|t| t.join().unwrap()).collect();
+        let created: usize = results.iter().map(|r| r.0).sum();
+        assert_eq!(created, limit, "{kind}");
+        let keyed: BTreeSet<_> = results.iter().map(|r| r.1.clone()).collect();
+        assert_eq!(keyed.len(), 1, "{kind}: {keyed:?}");
+    }
+}
