@@ -6,19 +6,31 @@
 #
 # The server refuses to listen beyond loopback without bearer tokens; set
 # SEAMSTRESS_TOKENS (or SEAMSTRESS_INSECURE_OPEN=true on a trusted network).
+# compose.yaml runs the image as a cluster: API servers and workers over
+# PostgreSQL and an S3 store.
 
 FROM rust:1.95-bookworm AS build
 WORKDIR /src
-# Dependencies first, so that a source change does not rebuild them.
+# Dependencies first, so that a source change does not rebuild them: the
+# real manifest over stub sources. Cargo loads every [[bench]] target that
+# Cargo.toml names (autobenches is off) and fails on a missing file, so each
+# gets a stub; the names are read from Cargo.toml, so that a new bench needs
+# no change here. (No [[test]] or [[example]] is named there: tests/ and
+# examples/ are found automatically, and left out of the image.)
 COPY Cargo.toml Cargo.lock ./
 RUN mkdir -p src benches \
     && echo 'fn main() {}' > src/main.rs \
     && touch src/lib.rs \
-    && for b in erase seam_aware service bc1 farm; do echo 'fn main() {}' > benches/$b.rs; done \
+    && benches=$(awk '/^\[/ { bench = ($0 ~ /^\[\[bench\]\]/); next } \
+            bench && /^name *=/ { sub(/^name *= *"/, ""); sub(/".*/, ""); print }' Cargo.toml) \
+    && for b in $benches; do echo 'fn main() {}' > "benches/$b.rs"; done \
     && cargo build --release --locked \
     && rm -rf src benches
 COPY src ./src
 COPY benches ./benches
+# Compiled in: the PostgreSQL job store's migrations (sqlx::migrate!) and
+# the API description the server serves (include_str!).
+COPY migrations ./migrations
 COPY openapi.yaml ./
 # The stub build left fresh fingerprints; make sure the real sources win.
 RUN touch src/main.rs src/lib.rs && cargo build --release --locked --bin seamstress
@@ -32,9 +44,13 @@ RUN apt-get update \
 COPY --from=build /src/target/release/seamstress /usr/local/bin/seamstress
 USER seamstress
 VOLUME ["/data"]
-EXPOSE 8080
+# 8080: the API (serve); 9090: a worker's /metrics and /healthz, when its
+# --metrics-listen says so (it stays on loopback by default).
+EXPOSE 8080 9090
 ENV SEAMSTRESS_LISTEN=0.0.0.0:8080 \
     SEAMSTRESS_DATA=/data
+# For `serve` on the default port; a `worker` container needs its own
+# check, on its metrics port (as compose.yaml gives it).
 HEALTHCHECK --interval=30s --timeout=5s --start-period=10s --retries=3 \
     CMD curl -fsS http://127.0.0.1:8080/healthz || exit 1
 ENTRYPOINT ["seamstress"]

@@ -37,7 +37,11 @@ pub fn routes() -> Vec<(Method, &'static str, MethodRouter<Shared>)> {
         (Method::GET, "/v1/jobs", get(list_jobs)),
         (Method::GET, "/v1/jobs/{id}", get(get_job)),
         (Method::DELETE, "/v1/jobs/{id}", delete(delete_job)),
-        (Method::GET, "/v1/jobs/{id}/files/{*name}", get(super::download::get_file)),
+        (
+            Method::GET,
+            "/v1/jobs/{id}/files/{*name}",
+            get(super::download::get_file),
+        ),
         (Method::GET, "/healthz", get(healthz)),
         (Method::GET, "/readyz", get(readyz)),
         (Method::GET, "/metrics", get(metrics)),
@@ -845,5 +849,4 @@ mod tests {
         assert!(parse_query(Some("mode=sideways")).is_err());
         assert!(parse_query(None).unwrap().1.name.is_none());
     }
-
 }

@@ -156,7 +156,12 @@ pub(super) fn relay_store_events(app: &Shared) {
     app.jobs.listen(Arc::new(move |event| {
         if let Some(app) = weak.upgrade() {
             match event {
-                StoreEvent::Queued => app.work.notify_waiters(),
+                StoreEvent::Queued => {
+                    // Every idle worker tries; the permit covers one that
+                    // is between a claim and its wait.
+                    app.work.notify_waiters();
+                    app.work.notify_one();
+                }
                 StoreEvent::Finished => app.announce_finished(),
             }
         }
