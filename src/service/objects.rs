@@ -62,6 +62,26 @@ impl ObjectFileStore {
         })
     }
 
+    /// One PUT below a part's size, a multipart upload above it; an
+    /// upload that fails is aborted, leaving nothing behind.
+    async fn upload(&self, path: Path, bytes: Bytes) -> Result<(), StoreError> {
+        let store: Arc<dyn ObjectStore> = self.s3.clone();
+        let mut writer =
+            BufWriter::with_capacity(store, path, PART_BYTES).with_max_concurrency(PARTS_IN_FLIGHT);
+        let written = async {
+            writer.put(bytes).await.map_err(obj_err)?;
+            writer
+                .shutdown()
+                .await
+                .map_err(|e| StoreError::Files(e.to_string()))
+        }
+        .await;
+        if written.is_err() {
+            let _ = writer.abort().await;
+        }
+        written
+    }
+
     /// The object path of `key`, refusing keys that would leave the prefix.
     fn path(&self, key: &str) -> Result<Path, StoreError> {
         if key
@@ -82,25 +102,27 @@ impl ObjectFileStore {
 impl FileStore for ObjectFileStore {
     fn put(&self, key: &str, bytes: &[u8]) -> Result<(), StoreError> {
         let path = self.path(key)?;
-        let store: Arc<dyn ObjectStore> = self.s3.clone();
-        let bytes = Bytes::copy_from_slice(bytes);
-        self.rt.block_on(async move {
-            // One PUT below a part's size, a multipart upload above it; an
-            // upload that fails is aborted, leaving nothing behind.
-            let mut writer = BufWriter::with_capacity(store, path, PART_BYTES)
-                .with_max_concurrency(PARTS_IN_FLIGHT);
-            let written = async {
-                writer.put(bytes).await.map_err(obj_err)?;
-                writer
-                    .shutdown()
-                    .await
-                    .map_err(|e| StoreError::Files(e.to_string()))
+        self.rt
+            .block_on(self.upload(path, Bytes::copy_from_slice(bytes)))
+    }
+
+    fn put_all(&self, blobs: &[(String, &[u8])]) -> Result<(), StoreError> {
+        let uploads = blobs
+            .iter()
+            .map(|(key, bytes)| Ok(self.upload(self.path(key)?, Bytes::copy_from_slice(bytes))))
+            .collect::<Result<Vec<_>, StoreError>>()?;
+        self.rt
+            .block_on(futures_util::future::try_join_all(uploads))
+            .map(drop)
+    }
+
+    fn remove(&self, key: &str) -> Result<(), StoreError> {
+        let path = self.path(key)?;
+        self.rt.block_on(async {
+            match self.s3.delete(&path).await {
+                Ok(()) | Err(object_store::Error::NotFound { .. }) => Ok(()),
+                Err(e) => Err(obj_err(e)),
             }
-            .await;
-            if written.is_err() {
-                let _ = writer.abort().await;
-            }
-            written
         })
     }
 

@@ -304,14 +304,19 @@ impl JobStore for PgJobStore {
                     return Ok(None);
                 };
                 job.start(&worker, now_ms);
-                store(tx, &job).await?;
-                sqlx::query("UPDATE jobs SET lease_owner = $2, lease_until = $3 WHERE id = $1")
-                    .bind(&job.id)
-                    .bind(&worker)
-                    .bind(ms(until))
-                    .execute(&mut *tx)
-                    .await
-                    .map_err(db_err)?;
+                sqlx::query(
+                    "UPDATE jobs SET state = 'running', attempts = $2, data = $3,
+                         lease_owner = $4, lease_until = $5
+                     WHERE id = $1",
+                )
+                .bind(&job.id)
+                .bind(job.attempts as i32)
+                .bind(encode(&job)?)
+                .bind(&worker)
+                .bind(ms(until))
+                .execute(&mut *tx)
+                .await
+                .map_err(db_err)?;
                 Ok(Some(job))
             })
         })
@@ -333,16 +338,32 @@ impl JobStore for PgJobStore {
         })
     }
 
+    /// One guarded statement: progress is most of a job's writes, and
+    /// needs no transaction; a final state adds its `NOTIFY`.
     fn update_running(&self, job: &Job) -> Result<bool, StoreError> {
-        let job = job.clone();
-        self.with(move |tx| {
-            Box::pin(async move {
-                if !holds(tx, &job.id, job.worker.as_deref()).await? {
-                    return Ok(false);
-                }
-                store(tx, &job).await?;
-                Ok(true)
-            })
+        let data = encode(job)?;
+        self.rt.block_on(async {
+            let sql = "UPDATE jobs SET state = $2, finished_ms = $3, attempts = $4, data = $5
+                 WHERE id = $1 AND state = 'running' AND lease_owner IS NOT DISTINCT FROM $6";
+            let update = sqlx::query(sql)
+                .bind(&job.id)
+                .bind(job.state.as_str())
+                .bind(job.finished_ms.map(ms))
+                .bind(job.attempts as i32)
+                .bind(&data)
+                .bind(job.worker.as_deref());
+            if !job.state.is_terminal() {
+                let done = update.execute(&self.pool).await.map_err(db_err)?;
+                return Ok(done.rows_affected() == 1);
+            }
+            let mut tx = self.pool.begin().await.map_err(db_err)?;
+            let done = update.execute(&mut *tx).await.map_err(db_err)?;
+            if done.rows_affected() != 1 {
+                return Ok(false);
+            }
+            notify(&mut tx, StoreEvent::Finished).await?;
+            tx.commit().await.map_err(db_err)?;
+            Ok(true)
         })
     }
 

@@ -167,6 +167,19 @@ pub enum StoreEvent {
 pub trait FileStore: Send + Sync + 'static {
     fn put(&self, key: &str, bytes: &[u8]) -> Result<(), StoreError>;
 
+    /// Several `put`s; a store whose writes are round trips makes them at
+    /// once. On an error some may be stored: the caller removes them.
+    fn put_all(&self, blobs: &[(String, &[u8])]) -> Result<(), StoreError> {
+        blobs
+            .iter()
+            .try_for_each(|(key, bytes)| self.put(key, bytes))
+    }
+
+    /// Removes one blob; absent is not an error.
+    fn remove(&self, key: &str) -> Result<(), StoreError> {
+        self.delete_prefix(key)
+    }
+
     fn get(&self, key: &str) -> Result<Option<Vec<u8>>, StoreError>;
 
     /// Bytes `range` of a blob (fewer where the blob ends first), so that

@@ -342,22 +342,28 @@ fn execute(app: &Shared, mut job: Job, flag: &AtomicU8) -> Result<JobState, Stor
                 return stopped(app, job, Stop::Canceled);
             }
             let t = Instant::now();
-            let mut files = Vec::with_capacity(produced.files.len());
-            for (name, bytes) in &produced.files {
-                if let Err(e) = app.files.put(&keys::output(&job.id, name), bytes) {
-                    // No partial results, even should recording the
-                    // failure fail too (`fail` then removes the rest).
-                    let _ = app.files.delete_prefix(&keys::outputs(&job.id));
-                    let message = format!("cannot store the results: {e}");
-                    return fail(app, job, e.job_code(), message, started);
-                }
-                files.push(FileEntry {
+            let blobs: Vec<(String, &[u8])> = produced
+                .files
+                .iter()
+                .map(|(name, bytes)| (keys::output(&job.id, name), bytes.as_slice()))
+                .collect();
+            if let Err(e) = app.files.put_all(&blobs) {
+                // No partial results, even should recording the failure
+                // fail too (`fail` then removes the rest).
+                let _ = app.files.delete_prefix(&keys::outputs(&job.id));
+                let message = format!("cannot store the results: {e}");
+                return fail(app, job, e.job_code(), message, started);
+            }
+            let files = produced
+                .files
+                .iter()
+                .map(|(name, bytes)| FileEntry {
                     name: name.clone(),
                     bytes: bytes.len() as u64,
                     sha256: hex(&Sha256::digest(bytes)),
                     content_type: content_type(name).to_string(),
-                });
-            }
+                })
+                .collect();
             job.timings_ms.load = produced.timings.load;
             job.timings_ms.process = produced.timings.process;
             job.timings_ms.rewrite = produced.timings.rewrite;
@@ -411,7 +417,7 @@ fn finish(app: &Shared, mut job: Job, started: Instant) -> Result<JobState, Stor
     if !app.jobs.update_running(&job)? {
         return lost(app, &job.id);
     }
-    app.files.delete_prefix(&keys::input(&job.id))?;
+    app.files.remove(&keys::input(&job.id))?;
     if let Some(ms) = job.timings_ms.total {
         app.metrics.stage("total", ms);
     }
