@@ -46,6 +46,7 @@ const WORK_BYTES_PER_POINT: f64 = 1430.0;
 /// itself: a 128² texture peaks at 10 MiB).
 const INTERCEPT_BYTES: f64 = -11.6 * 1048576.0;
 const MIN_BYTES: f64 = 12.0 * 1048576.0;
+const BASE_BYTES: f64 = INTERCEPT_BYTES;
 
 /// Triangles' bounding boxes may cover this many times a texture's texels
 /// (over all levels) before the job is refused: the shared models cover
@@ -90,30 +91,65 @@ pub struct OverBudget {
     pub why: &'static str,
 }
 
+/// The quantities the memory estimate is linear in, as [`need`] counts them.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Terms {
+    /// Texels held through the job: every texture's level 0, a third more
+    /// with mips.
+    pub held_texels: f64,
+    /// Level-0 texels of the texture the estimate's working set is of (the
+    /// one whose work term is largest).
+    pub work_texels: u64,
+    /// That texture's level-0 seam quadrature points.
+    pub work_points: u64,
+}
+
+impl Terms {
+    /// The estimated peak memory, bytes (saturating: a hostile plan
+    /// estimates at `u64::MAX`).
+    pub fn memory_bytes(&self) -> u64 {
+        (BASE_BYTES + HELD_BYTES_PER_TEXEL * self.held_texels + work_bytes(self)).max(MIN_BYTES)
+            as u64
+    }
+}
+
+/// The working set of one texture.
+fn work_bytes(t: &Terms) -> f64 {
+    WORK_BYTES_PER_TEXEL * t.work_texels as f64 + WORK_BYTES_PER_POINT * t.work_points as f64
+}
+
 /// Counts what `plan` will cost under `opts`.
 pub fn need(plan: &Plan, opts: &ProcessOptions) -> Need {
+    need_and_terms(plan, opts).0
+}
+
+/// [`need`], and the terms its memory estimate is made of.
+pub fn need_and_terms(plan: &Plan, opts: &ProcessOptions) -> (Need, Terms) {
     let mut total = Need::default();
-    let (mut held, mut work) = (0.0f64, 0.0f64);
+    let mut terms = Terms::default();
     for t in &plan.textures {
         let (one, level0) = texture_need(t, opts.mips);
         let mut texels = level0.texels as f64;
         if opts.mips {
             texels *= 4.0 / 3.0;
         }
-        held += HELD_BYTES_PER_TEXEL * texels;
-        work = work.max(
-            WORK_BYTES_PER_TEXEL * level0.texels as f64
-                + WORK_BYTES_PER_POINT * level0.quadrature_points as f64,
-        );
+        terms.held_texels += texels;
+        let this = Terms {
+            held_texels: 0.0,
+            work_texels: level0.texels,
+            work_points: level0.quadrature_points,
+        };
+        if work_bytes(&this) > work_bytes(&terms) {
+            (terms.work_texels, terms.work_points) = (this.work_texels, this.work_points);
+        }
         total.texels = total.texels.saturating_add(one.texels);
         total.quadrature_points = total
             .quadrature_points
             .saturating_add(one.quadrature_points);
         total.covered_texels = total.covered_texels.saturating_add(one.covered_texels);
     }
-    // Saturating float → integer: a hostile plan estimates at u64::MAX.
-    total.memory_bytes = (INTERCEPT_BYTES + held + work).max(MIN_BYTES) as u64;
-    total
+    total.memory_bytes = terms.memory_bytes();
+    (total, terms)
 }
 
 /// Refuses a job whose need is over `limits`, or whose seams or triangles

@@ -67,6 +67,15 @@ pub fn router(app: Shared) -> Router {
         .with_state(app)
 }
 
+/// A worker process's routes: `/metrics` and `/healthz`, nothing else.
+pub fn operations_router(app: Shared) -> Router {
+    Router::new()
+        .route("/metrics", get(metrics))
+        .route("/healthz", get(healthz))
+        .fallback(fallback)
+        .with_state(app)
+}
+
 async fn fallback() -> ApiError {
     ApiError::not_found("no such route")
 }
@@ -776,7 +785,7 @@ async fn delete_job(
     Ok(StatusCode::NO_CONTENT.into_response())
 }
 
-pub(super) async fn healthz() -> Response {
+async fn healthz() -> Response {
     Json(json!({ "status": "ok" })).into_response()
 }
 
@@ -817,7 +826,7 @@ async fn readyz(State(app): State<Shared>) -> Result<Response, ApiError> {
     Ok(Json(json!({ "status": "ready" })).into_response())
 }
 
-pub(super) async fn metrics(State(app): State<Shared>) -> Result<Response, ApiError> {
+async fn metrics(State(app): State<Shared>) -> Result<Response, ApiError> {
     let counts = blocking(&app, |a| Ok(a.jobs.counts()?)).await?;
     let text = app.metrics.render(&counts, app.cfg.workers);
     Ok((

@@ -134,7 +134,7 @@ fn recover(jobs: &dyn JobStore, files: &dyn FileStore, exclusive: bool) -> Resul
 }
 
 /// Opens the stores and recovers them, off the async runtime.
-pub(super) async fn start_stores(cfg: &Config) -> Result<Stores, ServeError> {
+async fn start_stores(cfg: &Config) -> Result<Stores, ServeError> {
     let (cfg, rt) = (cfg.clone(), tokio::runtime::Handle::current());
     tokio::task::spawn_blocking(move || {
         let stores = open_stores(&cfg, &rt)?;
@@ -151,7 +151,7 @@ pub(super) async fn start_stores(cfg: &Config) -> Result<Stores, ServeError> {
 
 /// Wakes this process's idle workers and waiting requests when another
 /// process sharing the store queues or finishes a job.
-pub(super) fn relay_store_events(app: &Shared) {
+fn relay_store_events(app: &Shared) {
     let weak = Arc::downgrade(app);
     app.jobs.listen(Arc::new(move |event| {
         if let Some(app) = weak.upgrade() {
@@ -170,7 +170,7 @@ pub(super) fn relay_store_events(app: &Shared) {
 
 /// Every quarter of a lease, puts back the jobs whose lease ran out: their
 /// worker died, or lost the store for longer than the lease.
-pub(super) async fn leases(app: Shared) {
+async fn leases(app: Shared) {
     let mut stopping = app.stopping.subscribe();
     loop {
         tokio::select! {
@@ -208,6 +208,26 @@ pub(super) async fn leases(app: Shared) {
 }
 
 async fn run(cfg: Config, addrs: Vec<SocketAddr>) -> Result<(), ServeError> {
+    run_process(cfg, addrs, Role::Api).await
+}
+
+/// What a process serves besides its workers.
+#[derive(Clone, Copy, PartialEq, Eq)]
+pub(super) enum Role {
+    /// The API, retention and callbacks (`serve`).
+    Api,
+    /// `/metrics` and `/healthz` only (`worker`).
+    Worker,
+}
+
+/// A process's life: opens and recovers the stores, listens on `addrs`,
+/// starts its workers and background tasks, serves until SIGTERM or
+/// SIGINT, then shuts down within the grace period.
+pub(super) async fn run_process(
+    cfg: Config,
+    addrs: Vec<SocketAddr>,
+    role: Role,
+) -> Result<(), ServeError> {
     let Stores {
         jobs,
         files,
@@ -231,12 +251,18 @@ async fn run(cfg: Config, addrs: Vec<SocketAddr>) -> Result<(), ServeError> {
         tokio::spawn(worker::worker(app.clone(), index, thread));
     }
     tokio::spawn(leases(app.clone()));
-    tokio::spawn(reaper(app.clone()));
-    tokio::spawn(super::callback::dispatch(app.clone()));
+    let routes = match role {
+        Role::Api => {
+            tokio::spawn(reaper(app.clone()));
+            tokio::spawn(super::callback::dispatch(app.clone()));
+            super::api::router(app.clone())
+        }
+        Role::Worker => super::api::operations_router(app.clone()),
+    };
 
     let (stop_http, stopped) = tokio::sync::oneshot::channel::<()>();
     let mut server = tokio::spawn(
-        axum::serve(listener, super::api::router(app.clone()))
+        axum::serve(listener, routes)
             .with_graceful_shutdown(async move {
                 let _ = stopped.await;
             })
@@ -248,7 +274,7 @@ async fn run(cfg: Config, addrs: Vec<SocketAddr>) -> Result<(), ServeError> {
         let _ = writeln!(out, "listening on {local}");
         let _ = out.flush();
     }
-    tracing::info!(addr = %local, workers, "listening");
+    tracing::info!(addr = %local, workers, process = %app.process, "listening");
 
     tokio::select! {
         _ = shutdown_signal() => {}
@@ -267,11 +293,7 @@ async fn run(cfg: Config, addrs: Vec<SocketAddr>) -> Result<(), ServeError> {
 
 /// Stops accepting, lets running jobs finish within `grace`, and puts the
 /// rest back in the queue (queued jobs stay queued: the store keeps them).
-pub(super) async fn shutdown(
-    app: Shared,
-    stop_http: tokio::sync::oneshot::Sender<()>,
-    grace: Duration,
-) {
+async fn shutdown(app: Shared, stop_http: tokio::sync::oneshot::Sender<()>, grace: Duration) {
     let deadline = tokio::time::Instant::now() + grace;
     tracing::info!(grace_s = grace.as_secs(), "shutting down");
     app.accepting.store(false, Ordering::Release);
@@ -306,7 +328,7 @@ pub(super) async fn shutdown(
     tracing::info!("stopped");
 }
 
-pub(super) async fn shutdown_signal() {
+async fn shutdown_signal() {
     #[cfg(unix)]
     {
         use tokio::signal::unix::{signal, SignalKind};

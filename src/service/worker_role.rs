@@ -7,19 +7,11 @@
 //! `--config` file) as `seamstress serve`, and its own `--workers` and
 //! memory budget.
 
-use std::future::IntoFuture;
-use std::io::Write;
 use std::path::PathBuf;
-use std::sync::Arc;
 use std::time::Duration;
 
-use axum::routing::get;
-use axum::Router;
-
-use super::app::{App, Shared};
 use super::config::{Config, ConfigError, ServeArgs};
-use super::server::{self, ServeError, Stores};
-use super::worker;
+use super::server::{self, Role, ServeError};
 
 /// `seamstress worker`'s options: the part of `serve`'s that a worker uses.
 #[derive(clap::Args, Clone, Debug, Default)]
@@ -121,62 +113,7 @@ pub fn work(args: WorkerArgs) -> Result<(), ServeError> {
         .enable_all()
         .thread_name("seamstress-worker")
         .build()?;
-    let result = rt.block_on(run(cfg, addrs));
+    let result = rt.block_on(server::run_process(cfg, addrs, Role::Worker));
     rt.shutdown_timeout(Duration::from_secs(1));
     result
-}
-
-async fn run(cfg: Config, addrs: Vec<std::net::SocketAddr>) -> Result<(), ServeError> {
-    let Stores {
-        jobs,
-        files,
-        lock: _lock,
-        ..
-    } = server::start_stores(&cfg).await?;
-    let listener = tokio::net::TcpListener::bind(&addrs[..])
-        .await
-        .map_err(|source| ServeError::Listen {
-            addr: cfg.listen.clone(),
-            source,
-        })?;
-    let local = listener.local_addr()?;
-    let (workers, grace) = (cfg.workers, cfg.grace);
-    let app: Shared = Arc::new(App::new(cfg, jobs, files));
-    server::relay_store_events(&app);
-    for index in 0..workers {
-        let thread = worker::JobThread::spawn(index)?;
-        tokio::spawn(worker::worker(app.clone(), index, thread));
-    }
-    tokio::spawn(server::leases(app.clone()));
-
-    let routes = Router::new()
-        .route("/metrics", get(super::api::metrics))
-        .route("/healthz", get(super::api::healthz))
-        .with_state(app.clone());
-    let (stop_http, stopped) = tokio::sync::oneshot::channel::<()>();
-    let mut http = tokio::spawn(
-        axum::serve(listener, routes)
-            .with_graceful_shutdown(async move {
-                let _ = stopped.await;
-            })
-            .into_future(),
-    );
-    {
-        let mut out = std::io::stdout().lock();
-        let _ = writeln!(out, "listening on {local}");
-        let _ = out.flush();
-    }
-    tracing::info!(addr = %local, workers, process = %app.process, "worker started");
-    tokio::select! {
-        _ = server::shutdown_signal() => {}
-        r = &mut http => {
-            return match r {
-                Ok(Ok(())) => Ok(()),
-                Ok(Err(e)) => Err(e.into()),
-                Err(e) => Err(std::io::Error::other(e).into()),
-            };
-        }
-    }
-    server::shutdown(app, stop_http, grace).await;
-    Ok(())
 }
