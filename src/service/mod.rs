@@ -8,7 +8,7 @@
 //! embedded implementations are SQLite ([`sqlite`]) and a local folder
 //! ([`files`]), the cluster's PostgreSQL ([`postgres`]) and an
 //! S3-compatible object store ([`objects`]). `seamstress worker`
-//! ([`worker_role`]) runs workers without the API.
+//! (`worker_role.rs`) runs workers without the API.
 
 mod api;
 mod app;

@@ -451,7 +451,7 @@ impl JobStore for PgJobStore {
     }
 
     /// Takes the due callbacks for this process: each is pushed
-    /// [`CALLBACK_CLAIM_MS`] into the future, so that another server does
+    /// `CALLBACK_CLAIM_MS` into the future, so that another server does
     /// not deliver it at the same time.
     fn callbacks_due(&self, now_ms: u64, limit: usize) -> Result<Vec<Job>, StoreError> {
         self.with(move |tx| {
