@@ -177,6 +177,13 @@ impl Job {
         self.progress = Progress::at("queued", 0.0);
     }
 
+    /// Back in the queue after a shutdown interrupted it: the attempt was
+    /// not the job's fault, so it is not counted.
+    pub fn requeue_uncounted(&mut self) {
+        self.requeue();
+        self.attempts = self.attempts.saturating_sub(1);
+    }
+
     /// A running job whose worker is gone: back in the queue, or failed
     /// once it has been started `max_attempts` times. True if re-queued.
     pub fn reclaim(&mut self, max_attempts: u32, now_ms: u64) -> bool {

@@ -394,9 +394,7 @@ impl JobStore for PgJobStore {
                 let Some(mut job) = load(tx, &id).await? else {
                     return Ok(false);
                 };
-                job.requeue();
-                // The interrupted attempt was not the job's fault.
-                job.attempts = job.attempts.saturating_sub(1);
+                job.requeue_uncounted();
                 store(tx, &job).await?;
                 notify(tx, StoreEvent::Queued).await?;
                 Ok(true)

@@ -321,9 +321,7 @@ impl JobStore for SqliteJobStore {
             let Some(mut job) = load(tx, id)? else {
                 return Ok(false);
             };
-            job.requeue();
-            // The interrupted attempt was not the job's fault.
-            job.attempts = job.attempts.saturating_sub(1);
+            job.requeue_uncounted();
             store(tx, &job)?;
             Ok(true)
         })
