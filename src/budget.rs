@@ -26,68 +26,67 @@ use crate::seam::quadrature::Segment;
 /// and three for the C1 term.
 const POINTS_PER_PIECE: u64 = 6;
 
-// The memory model, fitted to the peak resident memory (VmHWM) of the
-// default job on every shared model, each run in a process of its own
-// (`cargo bench --bench erase -- budget` prints both, with the quantities
-// below): blub, Fox, CesiumMan, Duck, BoxTextured, cube_gradient_1024 and
-// _128, WaterBottle, TextureTransformTest, 34–36 runs each on a two-core
-// machine, then 10 more each to check. The peak of one model varies from
-// run to run by up to a third (blub 538–725 MiB, Duck 90–113,
-// cube_gradient_1024 137–172, WaterBottle 674–802; the others 2–14%):
-// with the one heap all threads share (`heap`), where a freed block lands
-// depends on the threads' interleaving, so the image-sized blocks of
-// blub's last stage (its RGB copies and BC1 decodes) fit into freed holes
-// in one run and extend the heap in the next; and the per-thread packing
-// buffers of the dense products in Duck's Cholesky factorisation
-// (`private-gemm`, reserved at twice the L3 cache, touched as used) are
-// touched by whichever threads run the largest products. With one rayon
-// thread the same jobs peak alike run after run (blub aside).
+// The memory model, fitted to the peak resident memory of `seamstress
+// process` running the default job on every shared model (`cargo bench
+// --bench erase -- budget` prints both, with the quantities below): blub,
+// Fox, CesiumMan, Duck, BoxTextured, cube_gradient_1024 and _128,
+// WaterBottle, TextureTransformTest, 12 runs each on a two-core machine.
+// A job gives its free pages back between stages (`heap`), so its peak
+// follows the memory in use, and one model's peak varies by 2–11% from run
+// to run (WaterBottle and Fox the most: which of the threads' gemm packing
+// buffers the multigrid's coarsest factorisation touches).
 //
-// So the coefficients were chosen to keep every run's est/peak inside
+// The peak falls in one of two stages of the texture worked on, and the
+// estimate takes the larger:
+//
+// * the erase (every model with seams but BoxTextured): per texel its
+//   copies and conversions (padded input, solution, texel classes, charts,
+//   distances, band numbering); per seam quadrature point its taps and the
+//   system entries it adds; and the band of unknowns along the seams, whose
+//   systems and multigrid levels hold most of the memory. The band is as
+//   long as the seams and reaches as far as a seam's jump must spread,
+//   which depends on the texels, but is 8–11% of the texture's side on
+//   every shared model but BoxTextured (2%): so points × side stands for
+//   it. Points alone cannot: blub and Fox, both 2048² with 98 100 and
+//   168 228 points, hold 0.74 and 1.78 million unknowns.
+// * the encoding (BoxTextured, whose band is small for its seams, and
+//   TextureTransformTest, which has no seams and is not solved): the RGB
+//   images the BC1 figures compare and their decodes, and the seam-aware
+//   search's terms per quadrature point.
+//
+// On top of either, the process itself (code, libraries, thread stacks, the
+// parsed model) and every texture's decoded input and output files, held
+// until the job ends (WaterBottle, with four textures, alone measures it:
+// more than the f32 input and the files, the fit's 15 B per channel-texel
+// also covers what else a texture keeps).
+//
+// The coefficients were chosen to keep every run's est/peak inside
 // [1/1.2, 1.25] (|peak − est| ≤ 20% of est) with the largest margin for
-// the worst one, not by least squares: a linear programme maximises t
-// with est ≤ 1.25·(1 − t)·min and est ≥ (1 + t)·max/1.2 over each model's
-// runs. Every run of every model, the 10 checks too, is at least 2% inside
-// the band (blub's lowest peak, CesiumMan's and Duck's highest, Box and
-// TextureTransformTest, whose peaks hardly vary, are the closest). The
-// terms:
-//
-// * the process itself: code, libraries, thread stacks, the parsed model
-//   (a job's process is at 2 MiB when it starts, 4 once a small model is
-//   planned);
-// * every texture's decoded input, f32 per channel, held through the job,
-//   and its output files (PNG and DDS), kept until the job ends;
-// * the working set of one texture at a time, the largest: per texel its
-//   copies and conversions (padded input, solution, stored and float
-//   results, the RGB images the BC1 figures compare, texel classes, charts,
-//   distances, band numbering), more with an alpha channel (erased and
-//   measured apart), and per seam quadrature point roughly its taps and the
-//   system entries it adds, which also stand for the band of unknowns
-//   along the seam (data-dependent: Box's band is small for its seams,
-//   Duck's large, and it is solved directly).
-//
-// Silhouettes make no quadrature points (they only mark texels), so only
-// the seams' points count here; a texture without seams is not solved
-// (TextureTransformTest). A grey or grey+alpha 1024² texture (not a shared
-// model: cube_gradient_1024's image made grey) peaks at 117–135 MiB and
-// 163–176, estimated at 150 and 217: the working set is mostly per texel,
-// not per channel, and errs high with fewer channels.
+// the worst one, not by least squares: a linear programme maximises t with
+// est ≤ 1.25·(1 − t)·min and est ≥ (1 + t)·max/1.2 over each model's runs,
+// the stage that peaks taken for the lower bound and both stages for the
+// upper. Every one of the 108 runs is at least 3.8% inside the band; blub,
+// Fox and BoxTextured are nearest its top, CesiumMan, cube_gradient_1024
+// and WaterBottle its bottom.
 
 /// The process itself.
-const BASE_BYTES: f64 = 4.9 * 1048576.0;
+const BASE_BYTES: f64 = 10.8 * 1048576.0;
 /// Bytes per texel and channel of every texture (level 0; a third more
-/// with mips): 4 of them its decoded f32 input, the rest its output files.
-/// Set, not fitted (WaterBottle's second texture alone measures it, and a
-/// fit gives 5–8 with the others hardly moved).
-const HELD_BYTES_PER_CHANNEL_TEXEL: f64 = 6.0;
-/// Bytes per texel of the texture worked on (level 0).
-const WORK_BYTES_PER_TEXEL: f64 = 124.0;
-/// More bytes per texel when that texture has an alpha channel (Duck;
-/// the grey experiment above: +21 B for its alpha against +10 B per colour
-/// channel).
-const WORK_BYTES_PER_ALPHA_TEXEL: f64 = 49.0;
-/// Bytes per seam quadrature point of the texture worked on (level 0).
-const WORK_BYTES_PER_POINT: f64 = 888.0;
+/// with mips).
+const HELD_BYTES_PER_CHANNEL_TEXEL: f64 = 15.1;
+/// The erase of the texture worked on: bytes per texel (level 0)…
+const ERASE_BYTES_PER_TEXEL: f64 = 26.6;
+/// …per seam quadrature point…
+const ERASE_BYTES_PER_POINT: f64 = 843.0;
+/// …and per seam quadrature point and texel of the texture's side (the
+/// band along the seams).
+const ERASE_BYTES_PER_POINT_SIDE: f64 = 0.836;
+/// Its encoding: bytes per texel (set, not fitted: no model's colour-only
+/// encoding peaks, and the fit leaves it anywhere from 0 to 40 with the
+/// others unmoved)…
+const ENCODE_BYTES_PER_TEXEL: f64 = 20.0;
+/// …and per seam quadrature point (the seam-aware search's terms).
+const ENCODE_BYTES_PER_POINT: f64 = 711.0;
 
 /// Triangles' bounding boxes may cover this many times a texture's texels
 /// (over all levels) before the job is refused: the shared models cover
@@ -143,8 +142,6 @@ pub struct Terms {
     /// Level-0 texels of the texture worked on at the peak (the one whose
     /// working set is largest).
     pub work_texels: u64,
-    /// Whether that texture has an alpha channel.
-    pub work_alpha: bool,
     /// That texture's level-0 seam quadrature points.
     pub work_points: u64,
 }
@@ -158,14 +155,18 @@ impl Terms {
     }
 }
 
-/// The working set of the texture `t` describes.
+/// The working set of the texture `t` describes: the larger of its erase
+/// (none without seams: such a texture is not solved) and its encoding.
 fn work_bytes(t: &Terms) -> f64 {
-    let per_texel = if t.work_alpha {
-        WORK_BYTES_PER_TEXEL + WORK_BYTES_PER_ALPHA_TEXEL
+    let (texels, points) = (t.work_texels as f64, t.work_points as f64);
+    let erase = if t.work_points > 0 {
+        ERASE_BYTES_PER_TEXEL * texels
+            + (ERASE_BYTES_PER_POINT + ERASE_BYTES_PER_POINT_SIDE * texels.sqrt()) * points
     } else {
-        WORK_BYTES_PER_TEXEL
+        0.0
     };
-    per_texel * t.work_texels as f64 + WORK_BYTES_PER_POINT * t.work_points as f64
+    let encode = ENCODE_BYTES_PER_TEXEL * texels + ENCODE_BYTES_PER_POINT * points;
+    erase.max(encode)
 }
 
 /// Counts what `plan` will cost under `opts`.
@@ -188,12 +189,10 @@ pub fn need_and_terms(plan: &Plan, opts: &ProcessOptions) -> (Need, Terms) {
         let this = Terms {
             held_channel_texels: 0.0,
             work_texels: level0.texels,
-            work_alpha: matches!(t.header.channels, 2 | 4),
             work_points: level0.seam_points,
         };
         if work_bytes(&this) > work_bytes(&terms) {
-            (terms.work_texels, terms.work_alpha, terms.work_points) =
-                (this.work_texels, this.work_alpha, this.work_points);
+            (terms.work_texels, terms.work_points) = (this.work_texels, this.work_points);
         }
         total.texels = total.texels.saturating_add(one.texels);
         total.quadrature_points = total
@@ -463,19 +462,25 @@ mod tests {
     fn the_estimate_is_the_process_and_the_terms() {
         let nothing = Terms::default();
         assert_eq!(nothing.memory_bytes(), BASE_BYTES as u64);
-        // A 2048² RGB texture with blub's seams: 656 MiB (measured 538–725).
+        // A 2048² RGB texture with blub's seams: 537 MiB (measured 447–461).
         let rgb = Terms {
             held_channel_texels: 3.0 * 4194304.0,
             work_texels: 4194304,
-            work_alpha: false,
             work_points: 98100,
         };
-        assert_eq!(rgb.memory_bytes() >> 20, 655);
-        let rgba = Terms {
-            work_alpha: true,
+        assert_eq!(rgb.memory_bytes() >> 20, 537);
+        // Without seams it is not solved, only encoded.
+        let seamless = Terms {
+            work_points: 0,
             ..rgb
         };
-        assert!(rgba.memory_bytes() > rgb.memory_bytes());
+        assert!(seamless.memory_bytes() < rgb.memory_bytes());
+        // Longer seams, and the same seams on a larger texture, cost more.
+        let longer = Terms {
+            work_points: 2 * 98100,
+            ..rgb
+        };
+        assert!(longer.memory_bytes() > rgb.memory_bytes());
         let hostile = Terms {
             work_texels: u64::MAX,
             ..rgb

@@ -20,6 +20,18 @@
 //! `rayon::join` came back as fresh pages on every use (17 munmaps in an erase
 //! of Fox, 2 with one arena; erase 1257 → 1094 ms, median of six interleaved
 //! runs). A first touch costs 0.4–1 µs a page on this kind of virtual machine.
+//!
+//! Kept mapped, though, freed blocks become holes that a later block of
+//! another size may not fit, and the process's peak then depends on where
+//! the threads' interleaving happened to put each block: blub's job peaked
+//! anywhere in 599–652 MiB with 445 MiB in use at most. So a job hands its
+//! free pages back ([`release_freed_memory`]) where one working set ends
+//! and a differently shaped one begins: after each band solve of an erase,
+//! after the erase, after the encoding. The peak then follows the memory in
+//! use (blub 445–459 MiB, Duck 90–96 from 99–116, cube_gradient_1024 119–128
+//! from 143–162), which is what the budget can estimate; the pages touched
+//! again cost Fox about 100 000 more faults, 0.1–0.2 s of system time on a
+//! 3 s job, within the run-to-run noise of its wall time.
 
 /// Serves large allocations from one heap for all threads and keeps freed
 /// memory mapped.
@@ -35,7 +47,8 @@ pub fn retain_freed_memory() {
     }
 }
 
-/// Returns the heap's free pages to the system (after a job, when idle).
+/// Returns the heap's free pages to the system: between a job's stages, and
+/// when a worker runs out of jobs.
 pub fn release_freed_memory() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: malloc_trim takes the allocator's own locks; any thread may call it.
@@ -44,21 +57,33 @@ pub fn release_freed_memory() {
     }
 }
 
-/// The process's resident memory in MB (0 where /proc is not available),
+/// The process's resident memory in MiB (0 where /proc is not available),
 /// for the solver's debug log: on a fresh process each new page costs a
 /// fault, so memory is time.
 pub fn resident_mb() -> u64 {
-    #[cfg(target_os = "linux")]
-    {
-        // SAFETY: sysconf only reads a system constant.
-        let page = unsafe { libc::sysconf(libc::_SC_PAGESIZE) }.max(0) as u64;
-        std::fs::read_to_string("/proc/self/statm")
-            .ok()
-            .and_then(|s| s.split_whitespace().nth(1)?.parse::<u64>().ok())
-            .map_or(0, |pages| (pages * page) >> 20)
-    }
-    #[cfg(not(target_os = "linux"))]
-    0
+    status_kb("VmRSS:") >> 10
+}
+
+/// The process's peak resident memory so far in MiB (the kernel's
+/// high-water mark; 0 where /proc is not available), for the stage logs.
+pub fn peak_resident_mb() -> u64 {
+    status_kb("VmHWM:") >> 10
+}
+
+/// A `kB` line of /proc/self/status.
+fn status_kb(key: &str) -> u64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find_map(|l| l.strip_prefix(key))?
+                .trim()
+                .trim_end_matches("kB")
+                .trim()
+                .parse()
+                .ok()
+        })
+        .unwrap_or(0)
 }
 
 /// `n` copies of `value`, written by all of rayon's threads.

@@ -723,11 +723,16 @@ fn process_texture(
 
     let plan = alpha::plan(b, opts.alpha);
     let level0 = erase_level(b, tex, opts, plan.is_some_and(|p| p.erase))?;
+    // The solver's working set is freed now and the encoder's has another
+    // shape: given back rather than left as holes, the process's peak
+    // follows the memory in use (see `heap`).
+    crate::heap::release_freed_memory();
     tracing::info!(
         seam_edges = level0.seams.seams.len(),
         closed = level0.verdicts.closed_count(),
         unknowns = level0.stats.unknowns,
         erase_ms = level0.erase_ms,
+        peak_mb = crate::heap::peak_resident_mb(),
         "seams erased"
     );
     let measure = Measure {
@@ -794,6 +799,9 @@ fn process_texture(
     let mut decoded = None;
     if opts.format == Format::Dds {
         let enc = encode_level(b, &level0, opts, plan.as_ref())?;
+        // As after the erase: the decodes and mip levels that follow are
+        // shaped unlike the encoder's blocks.
+        crate::heap::release_freed_memory();
         // Under a transparent texel of a one-bit-alpha DDS no colour is
         // shown: the colour figures take the erased texture's there.
         let decode = |blocks: &[Block], d: Decoder| {
@@ -835,6 +843,7 @@ fn process_texture(
         tracing::info!(
             encode_ms = enc.encode_ms,
             seam_aware_ms = enc.seam_aware_ms,
+            peak_mb = crate::heap::peak_resident_mb(),
             "level 0 encoded"
         );
         let dds_name = format!("{}.dds", b.name);
@@ -865,6 +874,7 @@ fn process_texture(
         });
         report.files.seams = Some(name);
     }
+    tracing::debug!(peak_mb = crate::heap::peak_resident_mb(), "texture done");
     Ok((report, files))
 }
 

@@ -278,6 +278,9 @@ pub fn erase(
         };
         band = wider;
         last = Some(out);
+        // The narrower band's system is freed; the wider one's is larger and
+        // would not fit in its holes (see `heap`).
+        crate::heap::release_freed_memory();
     }
 }
 
