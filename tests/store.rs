@@ -2,7 +2,8 @@
 //! store, and PostgreSQL (a server started here; several store handles on
 //! it stand for several processes of a cluster). Claims under contention,
 //! leases that run out, a worker whose job was taken from it, the queue
-//! bound and idempotency keys under concurrent submissions.
+//! bound and idempotency keys under concurrent submissions. And the file
+//! store's reads by range, on a folder and on S3 (SeaweedFS).
 
 use std::collections::BTreeSet;
 use std::sync::{Arc, Barrier, OnceLock};
@@ -10,13 +11,15 @@ use std::thread;
 
 use serde_json::json;
 
+use seamstress::service::files::LocalFileStore;
 use seamstress::service::job::{Job, JobState};
+use seamstress::service::objects::ObjectFileStore;
 use seamstress::service::postgres::PgJobStore;
 use seamstress::service::sqlite::SqliteJobStore;
-use seamstress::service::store::{JobStore, Lease, Submitted};
+use seamstress::service::store::{FileStore, JobStore, Lease, Submitted};
 
 mod common;
-use common::cluster::Postgres;
+use common::cluster::{Postgres, Seaweed};
 
 /// One PostgreSQL server for the file, a database per store; and a runtime
 /// for its connections.
@@ -255,5 +258,43 @@ fn the_queue_bound_and_idempotency_keys_hold_across_servers() {
         assert_eq!(created, limit, "{kind}");
         let keyed: BTreeSet<_> = results.iter().map(|r| r.1.clone()).collect();
         assert_eq!(keyed.len(), 1, "{kind}: {keyed:?}");
+    }
+}
+
+/// Reads by range, as downloads make them a piece at a time: inside the
+/// blob, running past its end (short), starting at or past it (empty), and
+/// of a blob that is not there (an error), alike on both file stores.
+#[test]
+fn file_stores_read_ranges_alike() {
+    let dir = std::env::temp_dir().join(format!("seamstress-files-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let mut stores: Vec<(&str, Box<dyn FileStore>)> =
+        vec![("folder", Box::new(LocalFileStore::open(&dir).unwrap()))];
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let seaweed = Seaweed::start();
+    if let Some(s3) = &seaweed {
+        for (name, value) in s3.env() {
+            std::env::set_var(name, value);
+        }
+        let url = s3.url("ranges");
+        stores.push((
+            "s3",
+            Box::new(ObjectFileStore::open(&url, rt.handle().clone()).unwrap()),
+        ));
+    }
+    let blob: Vec<u8> = (0..100u8).collect();
+    for (name, store) in &stores {
+        store.put("jobs/r/out/a.dds", &blob).unwrap();
+        let read = |r: std::ops::Range<u64>| store.read_range("jobs/r/out/a.dds", r).unwrap();
+        assert_eq!(read(10..20), &blob[10..20], "{name}");
+        assert_eq!(read(90..150), &blob[90..], "{name}: past the end");
+        assert!(read(100..110).is_empty(), "{name}: from the end");
+        assert!(read(120..130).is_empty(), "{name}: past the end");
+        assert!(read(5..5).is_empty(), "{name}: empty");
+        assert!(
+            store.read_range("jobs/r/out/missing", 0..10).is_err(),
+            "{name}: missing"
+        );
     }
 }

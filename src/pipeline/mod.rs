@@ -231,6 +231,9 @@ pub fn run_reporting(
         .map_err(PipelineError::Stopped)?;
         let fitted = crate::resize::fit(binding, opts.resize);
         let binding = fitted.as_ref().map_or(binding, |f| &f.0);
+        // The last texture's working set is freed, and this one's would
+        // land in its holes or not as the threads happen to interleave.
+        crate::heap::release_freed_memory();
         let (mut report, mut out) = process_texture(binding, load_ms, opts)?;
         report.resize = fitted.map(|f| f.1);
         files.append(&mut out);

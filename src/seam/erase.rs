@@ -278,9 +278,6 @@ pub fn erase(
         };
         band = wider;
         last = Some(out);
-        // The narrower band's system is freed; the wider one's is larger and
-        // would not fit in its holes (see `heap`).
-        crate::heap::release_freed_memory();
     }
 }
 
@@ -534,6 +531,10 @@ fn solve_band(
             x
         }
     };
+    // The system is freed; the output image, the band's growth and the next
+    // band's system are shaped otherwise and would not fit its holes whole,
+    // leaving the peak to where they happen to land (see `heap`).
+    crate::heap::release_freed_memory();
     let mut out = crate::heap::copied(input);
     out.par_chunks_mut(ch)
         .zip(unknown.par_iter())

@@ -20,7 +20,7 @@ use sqlx::{PgConnection, Row};
 use tokio::runtime::Handle;
 
 use super::job::{Callback, Job, JobState};
-use super::store::{JobStore, Lease, Reclaimed, StoreError, StoreEvent, Submitted};
+use super::store::{decode, encode, JobStore, Lease, Reclaimed, StoreError, StoreEvent, Submitted};
 
 static MIGRATOR: sqlx::migrate::Migrator = sqlx::migrate!("migrations/postgres");
 
@@ -56,15 +56,6 @@ fn db_err(e: sqlx::Error) -> StoreError {
     StoreError::Jobs(e.to_string())
 }
 
-fn decode(seq: i64, id: &str, data: &str) -> Result<Job, StoreError> {
-    let mut job: Job = serde_json::from_str(data).map_err(|e| StoreError::Corrupt {
-        id: id.to_string(),
-        message: e.to_string(),
-    })?;
-    job.seq = seq;
-    Ok(job)
-}
-
 fn decode_rows(rows: Vec<sqlx::postgres::PgRow>) -> Result<Vec<Job>, StoreError> {
     rows.iter()
         .map(|r| {
@@ -74,13 +65,6 @@ fn decode_rows(rows: Vec<sqlx::postgres::PgRow>) -> Result<Vec<Job>, StoreError>
             decode(seq, &id, &data)
         })
         .collect()
-}
-
-fn encode(job: &Job) -> Result<String, StoreError> {
-    serde_json::to_string(job).map_err(|e| StoreError::Corrupt {
-        id: job.id.clone(),
-        message: e.to_string(),
-    })
 }
 
 fn ms(v: u64) -> i64 {

@@ -9,7 +9,7 @@ use std::sync::Mutex;
 use rusqlite::{params, Connection, OptionalExtension, Transaction};
 
 use super::job::{Callback, Job, JobState};
-use super::store::{JobStore, Lease, Reclaimed, StoreError, Submitted};
+use super::store::{decode, encode, JobStore, Lease, Reclaimed, StoreError, Submitted};
 
 pub struct SqliteJobStore {
     conn: Mutex<Connection>,
@@ -100,22 +100,6 @@ fn add_columns(conn: &Connection) -> Result<(), StoreError> {
         }
     }
     Ok(())
-}
-
-fn decode(seq: i64, id: &str, data: &str) -> Result<Job, StoreError> {
-    let mut job: Job = serde_json::from_str(data).map_err(|e| StoreError::Corrupt {
-        id: id.to_string(),
-        message: e.to_string(),
-    })?;
-    job.seq = seq;
-    Ok(job)
-}
-
-fn encode(job: &Job) -> Result<String, StoreError> {
-    serde_json::to_string(job).map_err(|e| StoreError::Corrupt {
-        id: job.id.clone(),
-        message: e.to_string(),
-    })
 }
 
 fn query_jobs(

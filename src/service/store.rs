@@ -224,3 +224,22 @@ pub mod keys {
         format!("jobs/{id}/out")
     }
 }
+
+/// A job from the JSON a store keeps of it, with the store's sequence
+/// number (kept beside the JSON, not in it).
+pub(super) fn decode(seq: i64, id: &str, data: &str) -> Result<Job, StoreError> {
+    let mut job: Job = serde_json::from_str(data).map_err(|e| StoreError::Corrupt {
+        id: id.to_string(),
+        message: e.to_string(),
+    })?;
+    job.seq = seq;
+    Ok(job)
+}
+
+/// The JSON a store keeps of a job.
+pub(super) fn encode(job: &Job) -> Result<String, StoreError> {
+    serde_json::to_string(job).map_err(|e| StoreError::Corrupt {
+        id: job.id.clone(),
+        message: e.to_string(),
+    })
+}
