@@ -149,11 +149,9 @@ fn assert_first_band_holds(rel: &str, r: &pipeline::Report) {
 /// closed) to 0.4× or less under every GPU decoder, at a PSNR cost of at
 /// most 0.15 dB under each, mip level 0. The cost is measured against the
 /// erased texture, the one BC1 compresses: against the input, the erasure's
-/// own change would hide it. Where the regular encoding already leaves the
-/// seams within [`NOISE_FLOOR`] levels, there is nothing left to cut.
+/// own change would hide it. That holds even where the regular encoding
+/// leaves the seams a few hundredths of a level apart (blub).
 fn assert_seam_aware_gain(rel: &str, out: &pipeline::Output) {
-    /// Far below one 8-bit level: blub's erased texture itself sits at 0.009.
-    const NOISE_FLOOR: f64 = 0.05;
     let t = &out.report.textures[0];
     let regular = t.bc1.as_ref().expect("regular BC1 measured");
     let shipped = t.bc1_seam_aware.as_ref().expect("seam-aware BC1 measured");
@@ -167,7 +165,7 @@ fn assert_seam_aware_gain(rel: &str, out: &pipeline::Output) {
         let (rp, sp) = (r.encoding_psnr.unwrap(), s.encoding_psnr.unwrap());
         eprintln!("{rel} {d}: seam_rms {sb:.3} vs regular {rb:.3}; psnr {sp:.3} vs {rp:.3}");
         assert!(
-            sb <= 0.4 * rb || rb <= NOISE_FLOOR,
+            sb <= 0.4 * rb,
             "{rel} {d}: seam-aware seam_rms {sb} vs regular {rb}"
         );
         assert!(
