@@ -31,15 +31,6 @@ fn asset(rel: &str) -> PathBuf {
         .join(rel)
 }
 
-fn peak_rss_mb() -> f64 {
-    let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
-    status
-        .lines()
-        .find_map(|l| l.strip_prefix("VmHWM:"))
-        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<f64>().ok())
-        .map_or(f64::NAN, |kb| kb / 1024.0)
-}
-
 /// Runs one model in this process and prints one tab-separated line.
 fn child(rel: &str, mode: Mode, erase_all: bool) {
     let t = Instant::now();
@@ -75,7 +66,7 @@ fn child(rel: &str, mode: Mode, erase_all: bool) {
         r.timings_ms.erase,
         total_ms,
         r.solver.unknowns,
-        peak_rss_mb(),
+        seamstress::heap::peak_resident_mb() as f64,
         r.solver.band_radius.map_or("-".into(), |b| b.to_string()),
         r.input.seam_rms.unwrap_or(f64::NAN),
         r.erased.seam_rms.unwrap_or(f64::NAN),
