@@ -206,6 +206,11 @@ impl State {
         expand(self.q[e][ch], ch)
     }
 
+    /// Same endpoints and indices (the palettes follow from them).
+    fn same(&self, other: &State) -> bool {
+        self.q == other.q && self.idx == other.idx
+    }
+
     /// Four-colour mode needs distinct packed endpoints.
     fn valid(&self) -> bool {
         self.q[0] != self.q[1]
@@ -223,8 +228,52 @@ fn expand(q: i32, ch: usize) -> f64 {
 
 /// One channel's four-colour palette under `dec`, in \[0, 1\].
 fn channel_palette(dec: Decoder, ch: usize, q0: i32, q1: i32) -> [f64; 4] {
-    dec.palette(true, ch, q0 as u8, q1 as u8)
-        .map(|v| f64::from(v) / 255.0)
+    palette_table().get(dec, ch, q0, q1)
+}
+
+/// Every four-colour palette of every decoder, in \[0, 1\]: the endpoint
+/// search scores some 700 candidate palettes per block and sweep, and the
+/// decoders' integer formulas cost more than a lookup. Red and blue share a
+/// table (same bits, same formulas); 3 × (32² + 64²) entries, 480 KiB.
+struct PaletteTable {
+    /// Per decoder: the 5-bit channels' 32×32 palettes, then the 6-bit
+    /// channel's 64×64.
+    entries: Vec<[f64; 4]>,
+}
+
+const PALETTES_PER_DECODER: usize = 32 * 32 + 64 * 64;
+
+impl PaletteTable {
+    fn build() -> Self {
+        let mut entries = Vec::with_capacity(Decoder::ALL.len() * PALETTES_PER_DECODER);
+        for dec in Decoder::ALL {
+            for ch in [0, 1] {
+                let n = 1u8 << BITS[ch];
+                for q0 in 0..n {
+                    for q1 in 0..n {
+                        entries.push(dec.palette(true, ch, q0, q1).map(|v| f64::from(v) / 255.0));
+                    }
+                }
+            }
+        }
+        PaletteTable { entries }
+    }
+
+    #[inline]
+    fn get(&self, dec: Decoder, ch: usize, q0: i32, q1: i32) -> [f64; 4] {
+        let d = dec as usize * PALETTES_PER_DECODER;
+        let at = if ch == 1 {
+            d + 32 * 32 + ((q0 as usize) << 6 | q1 as usize)
+        } else {
+            d + ((q0 as usize) << 5 | q1 as usize)
+        };
+        self.entries[at]
+    }
+}
+
+fn palette_table() -> &'static PaletteTable {
+    static TABLE: std::sync::OnceLock<PaletteTable> = std::sync::OnceLock::new();
+    TABLE.get_or_init(PaletteTable::build)
 }
 
 /// Positions in [`Decoder::ALL`] of the decoders `target` scores under.
@@ -316,6 +365,28 @@ impl Layout {
         }
     }
 
+    /// For each footprint block, the others that share a seam point with
+    /// it: those whose local energy it enters.
+    fn neighbours(&self, points: usize) -> Vec<Vec<u32>> {
+        let mut at_point: Vec<Vec<u32>> = vec![Vec::new(); points];
+        for (s, touches) in self.touches.iter().enumerate() {
+            for t in touches {
+                at_point[t.point as usize].push(s as u32);
+            }
+        }
+        let mut out: Vec<Vec<u32>> = vec![Vec::new(); self.blocks.len()];
+        for blocks in &at_point {
+            for &a in blocks {
+                out[a as usize].extend(blocks.iter().copied().filter(|&b| b != a));
+            }
+        }
+        for n in &mut out {
+            n.sort_unstable();
+            n.dedup();
+        }
+        out
+    }
+
     /// Texel index of slot `k` of block `b`, or `None` in the padding.
     fn texel(&self, p: &Problem, b: usize, k: usize) -> Option<usize> {
         let (x, y) = ((b % self.bw) * 4 + k % 4, (b / self.bw) * 4 + k / 4);
@@ -347,11 +418,27 @@ pub fn optimise(
 
     float_solve(p, &layout, &mut states, opts)?;
     if opts.integer_search {
+        let neighbours = layout.neighbours(p.points.len());
+        // A block whose last search ended at a fixed point, none of whose
+        // neighbours has moved since, would find the same state again: its
+        // energy depends on nothing else. Later sweeps touch only the
+        // blocks around those that still move.
+        let mut settled = vec![false; states.len()];
         let mut energy = total_energy(p, &layout, &states, opts);
         for _ in 0..opts.max_sweeps {
             stats.sweeps += 1;
             for s in 0..states.len() {
-                improve_block(p, &layout, &mut states, s, opts);
+                if settled[s] {
+                    continue;
+                }
+                let before = states[s];
+                let fixed = improve_block(p, &layout, &mut states, s, opts);
+                settled[s] = fixed;
+                if !states[s].same(&before) {
+                    for &n in &neighbours[s] {
+                        settled[n as usize] = false;
+                    }
+                }
             }
             let e = total_energy(p, &layout, &states, opts);
             let fell = energy - e;
@@ -567,19 +654,26 @@ fn evaluate(local: &Local, st: &State) -> Evaluated {
     out
 }
 
+/// Rounds of [`improve_block`]'s alternation per visit: most blocks settle
+/// in one or two; the rest continue in the next sweep.
+const ROUNDS_PER_VISIT: usize = 4;
+
 /// Step 2 for one block: alternate the best integer endpoints for the
 /// current indices with single-texel index changes, while the energy falls.
+/// True when it stopped at a fixed point (a round changed nothing), not at
+/// the round limit.
 fn improve_block(
     p: &Problem,
     layout: &Layout,
     states: &mut [State],
     s: usize,
     opts: &SeamAwareOptions,
-) {
+) -> bool {
     let local = local_energy(p, layout, states, s, opts);
     let mut best = states[s];
     let mut ev = evaluate(&local, &best);
-    for _ in 0..4 {
+    let mut fixed = false;
+    for _ in 0..ROUNDS_PER_VISIT {
         let mut changed = false;
         if let Some(cand) = best_endpoints(&local, &best) {
             let cev = evaluate(&local, &cand);
@@ -596,10 +690,12 @@ fn improve_block(
             }
         }
         if !changed {
+            fixed = true;
             break;
         }
     }
     states[s] = best;
+    fixed
 }
 
 /// Moves slot `k` to palette entry `i` if that lowers the energy summed over
