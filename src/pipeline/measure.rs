@@ -1,0 +1,97 @@
+//! The figures of one texture's level 0: seam agreement over every seam and
+//! over the closed ones, PSNR inside the charts and per chart, per decoder.
+
+use std::collections::BTreeMap;
+
+use rayon::prelude::*;
+
+use super::alpha::{self, AlphaMetrics, AlphaPlan};
+use super::{DecoderMetrics, Metrics, PipelineError};
+use crate::bc1::Decoder;
+use crate::model::AlphaUse;
+use crate::seam::charts::{ChartFidelity, Charts};
+use crate::seam::{psnr, SeamMetric};
+
+/// The metric over every seam and over the closed ones, and the fidelity
+/// figures, for one texture's level 0.
+pub(super) struct Measure<'a> {
+    pub(super) all: SeamMetric,
+    pub(super) closed: SeamMetric,
+    pub(super) charts: &'a Charts,
+    pub(super) inside: &'a [bool],
+    pub(super) compared: usize,
+}
+
+impl Measure<'_> {
+    pub(super) fn input(&self, data: &[f32], channels: usize) -> Metrics {
+        Metrics {
+            seam_rms: self.all.seam_rms(data, channels, self.compared),
+            seam_rms_closed: self.closed.seam_rms(data, channels, self.compared),
+            psnr: None,
+            worst_chart_psnr: None,
+            charts_under_30db: None,
+            decoders: None,
+        }
+    }
+
+    /// An encoding's figures under every decoder; `decode` decodes it with
+    /// one. The decoders are measured side by side.
+    pub(super) fn per_decoder(
+        &self,
+        decode: impl Fn(Decoder) -> Result<Vec<f32>, PipelineError> + Sync,
+        input: &[f32],
+        erased: &[f32],
+    ) -> Result<BTreeMap<&'static str, DecoderMetrics>, PipelineError> {
+        Decoder::ALL
+            .par_iter()
+            .map(|&d| {
+                let data = decode(d)?;
+                let figures = DecoderMetrics {
+                    seam_rms: self.all.seam_rms(&data, 3, self.compared),
+                    seam_rms_closed: self.closed.seam_rms(&data, 3, self.compared),
+                    psnr: psnr(&data, input, 3, self.compared, self.inside),
+                    encoding_psnr: psnr(&data, erased, 3, self.compared, self.inside),
+                };
+                Ok((d.name(), figures))
+            })
+            .collect()
+    }
+
+    /// Alpha figures of `alpha` (one value per texel) against `input`'s
+    /// (and, for an encoding, against the `erased` alpha it encoded).
+    pub(super) fn alpha(
+        &self,
+        plan: &AlphaPlan,
+        alpha: &[f32],
+        input: &[f32],
+        erased: Option<&[f32]>,
+    ) -> AlphaMetrics {
+        let mask = match (plan.material, plan.cutoff) {
+            (AlphaUse::Mask { .. }, Some(c)) => Some(c),
+            _ => None,
+        };
+        AlphaMetrics {
+            seam_rms: self.all.seam_rms(alpha, 1, 1),
+            seam_rms_closed: self.closed.seam_rms(alpha, 1, 1),
+            psnr: psnr(alpha, input, 1, 1, self.inside),
+            encoding_psnr: erased.and_then(|e| psnr(alpha, e, 1, 1, self.inside)),
+            opacity_changes: mask.map(|c| alpha::opacity_changes(input, alpha, c, self.inside)),
+        }
+    }
+
+    pub(super) fn against(&self, data: &[f32], channels: usize, reference: &[f32]) -> Metrics {
+        let ChartFidelity {
+            worst_psnr,
+            under_threshold,
+            ..
+        } = self
+            .charts
+            .fidelity(data, reference, channels, self.compared);
+        Metrics {
+            psnr: psnr(data, reference, channels, self.compared, self.inside),
+            worst_chart_psnr: worst_psnr,
+            charts_under_30db: Some(under_threshold),
+            ..self.input(data, channels)
+        }
+    }
+}

@@ -1,0 +1,491 @@
+//! One texture of a job, from its level 0 to its last mip level, to its
+//! files and its report.
+//!
+//! Level 0's encoding is the longest chain of the job after the erasure:
+//! its seam-aware search is one thread's work. What does not depend on it
+//! runs beside it: the erased PNG, the erased texture's figures and every
+//! smaller mip level, each level's encoding beside the erasure of the levels
+//! below. Every piece computes the same bytes whichever thread runs it, so
+//! the files do not depend on the thread count.
+
+use std::time::Instant;
+
+use serde::Serialize;
+
+use super::alpha::{self, AlphaFormat, AlphaPlan, AlphaReport};
+use super::level::{
+    encode_level, encode_regular, encode_seam_aware, erase_level, rgb, EncodedLevel, ErasedLevel,
+};
+use super::measure::Measure;
+use super::{
+    Files, Format, Metrics, OutputFile, PipelineError, ProcessOptions, SeamShare, SeamSummary,
+    TextureReport,
+};
+use crate::bc1::alpha::decode_alpha_image;
+use crate::bc1::dds::{write_dds, DdsHeaderKind, MipLevel};
+use crate::bc1::{self, Block, Decoder};
+use crate::mips;
+use crate::model::{Texture, TextureBinding};
+use crate::picture::{seams_png, SeamPicture};
+use crate::seam::{colour_channels, SeamMetric};
+
+/// Milliseconds of one texture's stages. The stages on the texture's
+/// critical path (all but `beside`'s) follow one another and sum to
+/// `total`; `beside` gives the own time of the work that ran beside level
+/// 0's encoding.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct Timings {
+    /// Loading the model (the whole model's, before any texture).
+    pub load: u64,
+    /// Finding and judging the seams of level 0.
+    pub seams: u64,
+    /// Erasing level 0's seams.
+    pub erase: u64,
+    /// Level 0's regular BC1 encoding.
+    pub encode: u64,
+    /// Level 0's seam-aware search.
+    pub seam_aware: u64,
+    /// Waiting, after level 0's encoding, for the work beside it to end.
+    pub beside_wait: u64,
+    /// Decoding level 0's encodings under every decoder, with their figures.
+    pub metrics: u64,
+    /// Drawing `<name>.seams.png`.
+    pub pictures: u64,
+    /// Writing the DDS file's bytes.
+    pub dds: u64,
+    /// The texture from start to end.
+    pub total: u64,
+    pub beside: BesideTimings,
+}
+
+/// The own time of the work that ran beside level 0's encoding.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct BesideTimings {
+    /// Writing the erased PNG.
+    pub png: u64,
+    /// The input's and the erased texture's figures.
+    pub metrics: u64,
+    /// Erasing and encoding every smaller mip level.
+    pub mips: u64,
+}
+
+fn ms_since(t: Instant) -> u64 {
+    t.elapsed().as_millis() as u64
+}
+
+pub(super) fn process_texture(
+    b: &TextureBinding,
+    load_ms: u64,
+    opts: &ProcessOptions,
+) -> Result<(TextureReport, Vec<OutputFile>), PipelineError> {
+    let started = Instant::now();
+    let tex = &b.texture;
+    let span = tracing::info_span!("texture", image = b.image, name = %b.name);
+    let _guard = span.enter();
+    let encode_err = |message: String| PipelineError::Encode {
+        name: b.name.clone(),
+        message,
+    };
+
+    let plan = alpha::plan(b, opts.alpha);
+    let level0 = erase_level(b, tex, opts, plan.is_some_and(|p| p.erase))?;
+    // The solver's working set is freed now and the encoder's has another
+    // shape: given back rather than left as holes, the process's peak
+    // follows the memory in use (see `heap`).
+    crate::heap::release_freed_memory();
+    tracing::info!(
+        seam_edges = level0.seams.seams.len(),
+        closed = level0.verdicts.closed_count(),
+        unknowns = level0.stats.unknowns,
+        erase_ms = level0.erase_ms,
+        peak_mb = crate::heap::peak_resident_mb(),
+        "seams erased"
+    );
+    let measure = Measure {
+        all: SeamMetric::new(&level0.grid, &level0.seams),
+        closed: SeamMetric::new(&level0.grid, &level0.closed),
+        charts: &level0.charts,
+        inside: &level0.classes.inside,
+        compared: colour_channels(tex.channels),
+    };
+    let alphas =
+        plan.and_then(|p| Some((p, alpha::channel(tex)?, alpha::channel(&level0.stored)?)));
+    let dds = opts.format == Format::Dds;
+
+    let input_rgb = rgb(tex);
+    let erased_rgb = rgb(&level0.stored);
+    let figures = Figures {
+        name: &b.name,
+        tex,
+        measure: &measure,
+        input_rgb: &input_rgb,
+        erased_rgb: &erased_rgb,
+    };
+
+    let t = Instant::now();
+    let (first, side) = rayon::join(
+        || -> Result<_, PipelineError> {
+            if !dds {
+                return Ok(None);
+            }
+            let regular = encode_regular(b, &level0, opts, plan.as_ref())?;
+            let t = Instant::now();
+            // The regular encoding's figures need nothing of the search.
+            let (shipped, regular_figures) = rayon::join(
+                || encode_seam_aware(b, &level0, &regular, opts, plan.as_ref()),
+                || figures.of(&regular.blocks, regular.clear.as_deref()),
+            );
+            let (shipped, regular_figures) = (shipped?, regular_figures?);
+            let searched_ms = ms_since(t);
+            Ok(Some((
+                EncodedLevel::new(regular, shipped),
+                regular_figures,
+                searched_ms,
+            )))
+        },
+        || Beside::run(b, &level0, &measure, alphas.as_ref(), opts, plan.as_ref()),
+    );
+    let (first, side) = (first?, side?);
+    let (encode_ms, seam_aware_ms) = first
+        .as_ref()
+        .map_or((0, 0), |(e, _, searched_ms)| (e.encode_ms, *searched_ms));
+    let beside_wait = ms_since(t).saturating_sub(encode_ms + seam_aware_ms);
+    crate::heap::release_freed_memory();
+
+    let erased_name = format!("{}.erased.png", b.name);
+    let mut files = vec![OutputFile {
+        name: erased_name.clone(),
+        bytes: side.png,
+    }];
+    let mut report = TextureReport {
+        image: b.image,
+        name: b.name.clone(),
+        width: tex.width,
+        height: tex.height,
+        resize: None,
+        alpha: side.alpha,
+        seam_edges: level0.seams.seams.len(),
+        seams: seam_summary(&level0, opts),
+        input: side.input,
+        erased: side.erased,
+        bc1: None,
+        bc1_seam_aware: None,
+        bc1_target: None,
+        files: Files {
+            dds: None,
+            erased: erased_name,
+            seams: None,
+        },
+        timings_ms: Timings {
+            load: load_ms,
+            seams: level0.seams_ms,
+            erase: level0.erase_ms,
+            encode: encode_ms,
+            seam_aware: seam_aware_ms,
+            beside_wait,
+            beside: side.timings,
+            ..Timings::default()
+        },
+        solver: level0.stats,
+    };
+
+    let mut decoded = None;
+    if let Some((enc, regular, _)) = first {
+        let t = Instant::now();
+        let shipped = figures.of(&enc.shipped, enc.clear.as_deref())?;
+        report.bc1 = Some(regular.metrics);
+        if opts.seam_aware {
+            report.bc1_seam_aware = Some(shipped.metrics);
+            report.bc1_target = Some(opts.decoder);
+        }
+        if let (Some(r), Some((p, input, erased))) = (report.alpha.as_mut(), alphas.as_ref()) {
+            let alpha_figures = |regular| {
+                dds_alpha(&enc, p, tex, regular).map(|per| {
+                    per.into_iter()
+                        .map(|(d, a)| (d.name(), measure.alpha(p, &a, input, Some(erased))))
+                        .collect()
+                })
+            };
+            r.regular = alpha_figures(true);
+            r.dds = alpha_figures(false);
+        }
+        report.timings_ms.metrics = ms_since(t);
+        tracing::info!(
+            encode_ms,
+            seam_aware_ms,
+            peak_mb = crate::heap::peak_resident_mb(),
+            "level 0 encoded"
+        );
+
+        let t = Instant::now();
+        let dds_name = format!("{}.dds", b.name);
+        let mut levels = vec![MipLevel {
+            width: tex.width as u32,
+            height: tex.height as u32,
+            blocks: enc.shipped,
+            alpha: enc.alpha_shipped,
+        }];
+        levels.extend(side.smaller);
+        files.push(OutputFile {
+            name: dds_name.clone(),
+            bytes: dds_file(b, &levels, opts)?,
+        });
+        report.files.dds = Some(dds_name);
+        report.timings_ms.dds = ms_since(t);
+        decoded = Some((regular.ideal, shipped.ideal));
+    }
+    if opts.pictures {
+        let t = Instant::now();
+        let (regular, shipped) = decoded
+            .as_ref()
+            .map_or((&erased_rgb, &erased_rgb), |(r, s)| (r, s));
+        let picture = SeamPicture {
+            grid: &level0.grid,
+            input: &input_rgb,
+            erased: &erased_rgb,
+            bc1: regular,
+            seam_aware: shipped,
+            seams: &level0.seams,
+            closed: &level0.verdicts.closed,
+        };
+        let name = format!("{}.seams.png", b.name);
+        files.push(OutputFile {
+            name: name.clone(),
+            bytes: seams_png(&picture).map_err(|e| encode_err(e.to_string()))?,
+        });
+        report.files.seams = Some(name);
+        report.timings_ms.pictures = ms_since(t);
+    }
+    report.timings_ms.total = ms_since(started);
+    tracing::debug!(peak_mb = crate::heap::peak_resident_mb(), "texture done");
+    Ok((report, files))
+}
+
+/// What runs beside level 0's encoding, and what it made.
+struct Beside {
+    png: Vec<u8>,
+    input: Metrics,
+    erased: Metrics,
+    alpha: Option<AlphaReport>,
+    /// Mip levels 1 and smaller, encoded (empty without `mips` or a DDS).
+    smaller: Vec<MipLevel>,
+    timings: BesideTimings,
+}
+
+impl Beside {
+    fn run(
+        b: &TextureBinding,
+        level0: &ErasedLevel,
+        measure: &Measure<'_>,
+        alphas: Option<&(AlphaPlan, Vec<f32>, Vec<f32>)>,
+        opts: &ProcessOptions,
+        plan: Option<&AlphaPlan>,
+    ) -> Result<Beside, PipelineError> {
+        let tex = &b.texture;
+        // The mip chain is the longest of these: it starts first.
+        let (smaller, (png, input, erased, alpha, png_ms, metrics_ms)) = rayon::join(
+            || {
+                let t = Instant::now();
+                let smaller = if opts.mips && opts.format == Format::Dds {
+                    let count = mips::chain_len(tex.width, tex.height);
+                    smaller_levels(b, &level0.float, 1, count, opts, plan)
+                } else {
+                    Ok(Vec::new())
+                };
+                (smaller, ms_since(t))
+            },
+            || {
+                let t = Instant::now();
+                let png = level0.stored.encode_png();
+                let png_ms = ms_since(t);
+                let t = Instant::now();
+                let input = measure.input(&tex.data, tex.channels);
+                let erased = measure.against(&level0.stored.data, tex.channels, &tex.data);
+                let alpha = alphas.map(|(p, input, erased)| AlphaReport {
+                    format: p.format,
+                    material: p.material,
+                    erased_seams: p.erase,
+                    input: measure.alpha(p, input, input, None),
+                    erased: measure.alpha(p, erased, input, None),
+                    regular: None,
+                    dds: None,
+                });
+                (png, input, erased, alpha, png_ms, ms_since(t))
+            },
+        );
+        let (smaller, mips_ms) = smaller;
+        Ok(Beside {
+            png: png.map_err(|e| PipelineError::Encode {
+                name: b.name.clone(),
+                message: e.to_string(),
+            })?,
+            input,
+            erased,
+            alpha,
+            smaller: smaller?,
+            timings: BesideTimings {
+                png: png_ms,
+                metrics: metrics_ms,
+                mips: mips_ms,
+            },
+        })
+    }
+}
+
+/// Mip levels `k` to `count − 1`, each filtered from the erased (unrounded)
+/// level above, erased and encoded on its own. A level's encoding runs
+/// beside the erasure of the levels below it, which does not need it.
+fn smaller_levels(
+    b: &TextureBinding,
+    above: &Texture,
+    k: usize,
+    count: usize,
+    opts: &ProcessOptions,
+    plan: Option<&AlphaPlan>,
+) -> Result<Vec<MipLevel>, PipelineError> {
+    if k >= count {
+        return Ok(Vec::new());
+    }
+    let filtered = mips::downsample(above, b.wrap_s, b.wrap_t);
+    let level = erase_level(b, &filtered, opts, plan.is_some_and(|p| p.erase))?;
+    drop(filtered);
+    let (enc, below) = rayon::join(
+        || encode_level(b, &level, opts, plan),
+        || smaller_levels(b, &level.float, k + 1, count, opts, plan),
+    );
+    let (enc, mut below) = (enc?, below?);
+    tracing::debug!(
+        level = k,
+        width = level.grid.width,
+        erase_ms = level.erase_ms,
+        encode_ms = enc.encode_ms,
+        seam_aware_ms = enc.seam_aware_ms,
+        "mip level encoded"
+    );
+    let mut out = vec![MipLevel {
+        width: level.grid.width as u32,
+        height: level.grid.height as u32,
+        blocks: enc.shipped,
+        alpha: enc.alpha_shipped,
+    }];
+    out.append(&mut below);
+    Ok(out)
+}
+
+/// Level 0's encodings decoded and measured.
+struct Figures<'a> {
+    name: &'a str,
+    tex: &'a Texture,
+    measure: &'a Measure<'a>,
+    input_rgb: &'a [f32],
+    erased_rgb: &'a [f32],
+}
+
+/// One encoding's figures, and its ideal decoding (for the pictures).
+struct Measured {
+    metrics: Metrics,
+    ideal: Vec<f32>,
+}
+
+impl Figures<'_> {
+    /// Under a texel of a one-bit-alpha DDS encoded transparent (`clear`)
+    /// no colour is shown: the colour figures take the erased texture's there.
+    fn decode(
+        &self,
+        blocks: &[Block],
+        clear: Option<&[bool]>,
+        d: Decoder,
+    ) -> Result<Vec<f32>, PipelineError> {
+        let mut rgb =
+            bc1::decode_image_with(blocks, self.tex.width, self.tex.height, d).map_err(|e| {
+                PipelineError::Encode {
+                    name: self.name.to_string(),
+                    message: e.to_string(),
+                }
+            })?;
+        if let Some(clear) = clear {
+            for (t, _) in clear.iter().enumerate().filter(|(_, c)| **c) {
+                rgb[t * 3..t * 3 + 3].copy_from_slice(&self.erased_rgb[t * 3..t * 3 + 3]);
+            }
+        }
+        Ok(rgb)
+    }
+
+    /// The figures of an encoding of level 0.
+    fn of(&self, blocks: &[Block], clear: Option<&[bool]>) -> Result<Measured, PipelineError> {
+        let ideal = self.decode(blocks, clear, Decoder::Ideal)?;
+        let mut metrics = self.measure.against(&ideal, 3, self.input_rgb);
+        metrics.decoders = Some(self.measure.per_decoder(
+            |d| self.decode(blocks, clear, d),
+            self.input_rgb,
+            self.erased_rgb,
+        )?);
+        Ok(Measured { metrics, ideal })
+    }
+}
+
+fn seam_summary(level: &ErasedLevel, opts: &ProcessOptions) -> SeamSummary {
+    let total = level.seams.total_length();
+    let share = |closed: bool| {
+        let picked = level
+            .seams
+            .seams
+            .iter()
+            .zip(&level.verdicts.closed)
+            .filter(|(_, c)| **c == closed);
+        let (edges, length) = picked.fold((0, 0.0), |(n, l), (s, _)| (n + 1, l + s.length));
+        SeamShare {
+            edges,
+            length_share: if total > 0.0 { length / total } else { 0.0 },
+        }
+    };
+    SeamSummary {
+        tolerance: (!opts.erase_all).then_some(opts.seam_tolerance),
+        closed: share(true),
+        left: share(false),
+        spared: level.verdicts.spared,
+        padded_texels: level.padded,
+    }
+}
+
+/// The DDS's level-0 alpha under each decoder, when it holds alpha.
+/// `regular`: of the regular encoding rather than the shipped one.
+fn dds_alpha(
+    enc: &EncodedLevel,
+    plan: &AlphaPlan,
+    tex: &Texture,
+    regular: bool,
+) -> Option<Vec<(Decoder, Vec<f32>)>> {
+    let (w, h) = (tex.width, tex.height);
+    let (colour, alpha) = if regular {
+        (&enc.regular, &enc.alpha_regular)
+    } else {
+        (&enc.shipped, &enc.alpha_shipped)
+    };
+    let per = |d: Decoder| match plan.format {
+        AlphaFormat::Bc3 => Some(decode_alpha_image(alpha, w, h, d)),
+        AlphaFormat::Bc1a => Some(bc1::punch::punch_alpha(colour, w, h)),
+        AlphaFormat::Dropped => None,
+    };
+    Decoder::ALL
+        .into_iter()
+        .map(|d| Some((d, per(d)?)))
+        .collect()
+}
+
+/// The DDS file of `levels` (level 0 first).
+fn dds_file(
+    b: &TextureBinding,
+    levels: &[MipLevel],
+    opts: &ProcessOptions,
+) -> Result<Vec<u8>, PipelineError> {
+    let header = if opts.dx10 {
+        DdsHeaderKind::Dx10 { srgb: b.srgb }
+    } else {
+        DdsHeaderKind::Legacy
+    };
+    write_dds(levels, header).map_err(|e| PipelineError::Encode {
+        name: b.name.clone(),
+        message: e.to_string(),
+    })
+}
