@@ -288,6 +288,70 @@ fn repeated_runs_write_identical_files() {
     );
 }
 
+/// Every file of `dir`, by name; `report.json` without its timings, the one
+/// thing that may differ between runs.
+fn outputs_without_timings(dir: &Path) -> Vec<(String, Vec<u8>)> {
+    let mut files: Vec<(String, Vec<u8>)> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| {
+            let p = e.unwrap().path();
+            let name = p.file_name().unwrap().to_string_lossy().into_owned();
+            let mut bytes = std::fs::read(&p).unwrap();
+            if name == "report.json" {
+                let mut report: Value = serde_json::from_slice(&bytes).unwrap();
+                for t in report["textures"].as_array_mut().unwrap() {
+                    t.as_object_mut().unwrap().remove("timings_ms");
+                }
+                report.as_object_mut().unwrap().remove("timings_ms");
+                bytes = serde_json::to_vec(&report).unwrap();
+            }
+            (name, bytes)
+        })
+        .collect();
+    files.sort();
+    files
+}
+
+/// The stages run side by side on as many threads as there are; the bytes
+/// must not depend on how many. The controller has many seams, alpha and
+/// a chain of mip levels, each encoded beside the erasure of the next.
+#[test]
+fn outputs_are_identical_on_one_and_two_threads() {
+    let model = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/assets/oculus-touch-v3/oculus-touch-v3-left.glb");
+    let run = |threads: &str| {
+        let out = scratch(&format!("threads-{threads}"));
+        let o = Command::new(env!("CARGO_BIN_EXE_seamstress"))
+            .env("RAYON_NUM_THREADS", threads)
+            .args([
+                "process",
+                model.to_str().unwrap(),
+                "--mips",
+                "--pictures",
+                "--out",
+            ])
+            .arg(&out)
+            .output()
+            .expect("seamstress runs");
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let files = outputs_without_timings(&out);
+        let _ = std::fs::remove_dir_all(&out);
+        files
+    };
+    let (one, two) = (run("1"), run("2"));
+    assert!(
+        one.iter().any(|(n, _)| n.ends_with(".dds")),
+        "a DDS is written"
+    );
+    assert_eq!(
+        one.iter().map(|f| &f.0).collect::<Vec<_>>(),
+        two.iter().map(|f| &f.0).collect::<Vec<_>>()
+    );
+    for ((name, a), (_, b)) in one.iter().zip(&two) {
+        assert!(a == b, "{name} differs between one and two threads");
+    }
+}
+
 /// No validator error in a rewritten model but those its source has
 /// already (CesiumMan's skin weights do not sum to 1, say): the rewriting
 /// adds none.

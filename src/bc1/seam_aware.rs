@@ -37,6 +37,8 @@
 // step; iterator chains would hide which index is which.
 #![allow(clippy::needless_range_loop)]
 
+use rayon::prelude::*;
+
 use crate::bc1::{pack565, unpack565, Block, Decoder, Target};
 use crate::seam::quadrature::QuadPoint;
 use crate::seam::system::{SolveError, SpdSystem};
@@ -311,6 +313,9 @@ struct Layout {
     blocks: Vec<usize>,
     slot: Vec<u32>,
     touches: Vec<Vec<Touch>>,
+    /// Per seam point, where each of its taps lies: (block slot, texel
+    /// slot in the block), in the order of the point's taps.
+    at: Vec<[(u32, u8); 8]>,
 }
 
 impl Layout {
@@ -357,12 +362,49 @@ impl Layout {
                 });
             }
         }
+        let at = p
+            .points
+            .iter()
+            .map(|q| {
+                q.taps.map(|(t, _)| {
+                    let (b, k) = block_of(t);
+                    (slot[b], k)
+                })
+            })
+            .collect();
         Layout {
             bw,
             blocks,
             slot,
             touches,
+            at,
         }
+    }
+
+    /// The sweep's schedule: block slots grouped into waves, each wave after
+    /// every neighbour of lower slot and before every neighbour of higher
+    /// slot. A sweep in slot order reads, for each block, its lower
+    /// neighbours as already updated and its higher ones as not yet: so does
+    /// a sweep wave by wave, whatever order the blocks of one wave take
+    /// (no two of them are neighbours). The result is the same on any
+    /// number of threads.
+    fn waves(neighbours: &[Vec<u32>]) -> Vec<Vec<u32>> {
+        let mut wave_of = vec![0usize; neighbours.len()];
+        let mut waves: Vec<Vec<u32>> = Vec::new();
+        for (s, near) in neighbours.iter().enumerate() {
+            let w = near
+                .iter()
+                .filter(|&&n| (n as usize) < s)
+                .map(|&n| wave_of[n as usize] + 1)
+                .max()
+                .unwrap_or(0);
+            wave_of[s] = w;
+            if waves.len() <= w {
+                waves.resize_with(w + 1, Vec::new);
+            }
+            waves[w].push(s as u32);
+        }
+        waves
     }
 
     /// For each footprint block, the others that share a seam point with
@@ -423,20 +465,31 @@ pub fn optimise(
         // neighbours has moved since, would find the same state again: its
         // energy depends on nothing else. Later sweeps touch only the
         // blocks around those that still move.
+        let waves = Layout::waves(&neighbours);
         let mut settled = vec![false; states.len()];
         let mut energy = total_energy(p, &layout, &states, opts);
         for _ in 0..opts.max_sweeps {
             stats.sweeps += 1;
-            for s in 0..states.len() {
-                if settled[s] {
-                    continue;
-                }
-                let before = states[s];
-                let fixed = improve_block(p, &layout, &mut states, s, opts);
-                settled[s] = fixed;
-                if !states[s].same(&before) {
-                    for &n in &neighbours[s] {
-                        settled[n as usize] = false;
+            for wave in &waves {
+                let due: Vec<u32> = wave
+                    .iter()
+                    .copied()
+                    .filter(|&s| !settled[s as usize])
+                    .collect();
+                let improve = |&s: &u32| improve_block(p, &layout, &states, s as usize, opts);
+                let found: Vec<(State, bool)> = if due.len() >= MIN_PARALLEL_WAVE {
+                    due.par_iter().map(improve).collect()
+                } else {
+                    due.iter().map(improve).collect()
+                };
+                for (&s, (state, fixed)) in due.iter().zip(found) {
+                    let s = s as usize;
+                    settled[s] = fixed;
+                    if !state.same(&states[s]) {
+                        states[s] = state;
+                        for &n in &neighbours[s] {
+                            settled[n as usize] = false;
+                        }
                     }
                 }
             }
@@ -469,10 +522,10 @@ fn weight(p: &Problem, t: usize, opts: &SeamAwareOptions) -> f64 {
     }
 }
 
-fn decoded(p: &Problem, layout: &Layout, states: &[State], d: usize, t: u32, ch: usize) -> f64 {
-    let (x, y) = (t as usize % p.width, t as usize / p.width);
-    let b = (y / 4) * layout.bw + x / 4;
-    states[layout.slot[b] as usize].decoded(d, (y % 4) * 4 + x % 4, ch)
+/// The decoded value of a seam point's tap at `(slot, k)` ([`Layout::at`]).
+#[inline]
+fn decoded_at(states: &[State], (slot, k): (u32, u8), d: usize, ch: usize) -> f64 {
+    states[slot as usize].decoded(d, k as usize, ch)
 }
 
 /// E_c + α·E_s of the current states, the mean over the target's decoders.
@@ -492,12 +545,13 @@ fn total_energy(p: &Problem, layout: &Layout, states: &[State], opts: &SeamAware
                 }
             }
         }
-        for q in p.points {
+        for (q, at) in p.points.iter().zip(&layout.at) {
             for ch in 0..3 {
                 let v: f64 = q
                     .taps
                     .iter()
-                    .map(|&(t, w)| w * decoded(p, layout, states, d, t, ch))
+                    .zip(at)
+                    .map(|(&(_, w), &place)| w * decoded_at(states, place, d, ch))
                     .sum();
                 e += opts.alpha * q.weight * v * v;
             }
@@ -606,11 +660,10 @@ fn local_energy(
         for (di, &d) in slots.iter().enumerate() {
             // Contribution of texels outside this block, at their current values.
             let mut rest = [0.0f64; 3];
-            for &(t, c) in &q.taps {
-                let (x, y) = (t as usize % p.width, t as usize / p.width);
-                if (y / 4) * layout.bw + x / 4 != b {
+            for (&(_, c), &place) in q.taps.iter().zip(&layout.at[touch.point as usize]) {
+                if place.0 as usize != s {
                     for (ch, v) in rest.iter_mut().enumerate() {
-                        *v += c * decoded(p, layout, states, d, t, ch);
+                        *v += c * decoded_at(states, place, d, ch);
                     }
                 }
             }
@@ -654,6 +707,11 @@ fn evaluate(local: &Local, st: &State) -> Evaluated {
     out
 }
 
+/// Waves with fewer blocks due than this run on the calling thread: a
+/// block's search takes tens of microseconds, about what handing work to
+/// another thread costs.
+const MIN_PARALLEL_WAVE: usize = 4;
+
 /// Rounds of [`improve_block`]'s alternation per visit: most blocks settle
 /// in one or two; the rest continue in the next sweep.
 const ROUNDS_PER_VISIT: usize = 4;
@@ -665,10 +723,10 @@ const ROUNDS_PER_VISIT: usize = 4;
 fn improve_block(
     p: &Problem,
     layout: &Layout,
-    states: &mut [State],
+    states: &[State],
     s: usize,
     opts: &SeamAwareOptions,
-) -> bool {
+) -> (State, bool) {
     let local = local_energy(p, layout, states, s, opts);
     let mut best = states[s];
     let mut ev = evaluate(&local, &best);
@@ -694,8 +752,7 @@ fn improve_block(
             break;
         }
     }
-    states[s] = best;
-    fixed
+    (best, fixed)
 }
 
 /// Moves slot `k` to palette entry `i` if that lowers the energy summed over

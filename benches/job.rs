@@ -1,0 +1,338 @@
+//! Whole-job wall time and peak memory of `seamstress process`, as a build
+//! farm runs it: one process per model, load to last byte written.
+//!
+//! `cargo bench --bench job` runs each model of [`JOBS`] with and without
+//! `--mips` [`RUNS`] times (`SEAMSTRESS_BENCH_RUNS` overrides), and prints
+//! per row the median wall time, the CPU time and peak resident memory of
+//! that run, its stages from `report.json` (summed over the textures), how
+//! much of the wall time the report's stages cover, and, where Debian's
+//! `libnvtt-bin` is installed, `nvcompress -bc1` on the same erased images
+//! (no erasure, no metrics) as the ratio to beat. Fox's texture scaled to
+//! 4096² and 8192² is made by the bench in a temporary folder.
+//!
+//! Arguments filter the rows: `cargo bench --bench job -- Fox` runs the rows
+//! whose name contains "Fox".
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::Instant;
+
+use base64::Engine as _;
+use serde_json::Value;
+
+/// Runs per row; the row shows the median by wall time.
+const RUNS: usize = 5;
+
+/// Shared models (relative to `../shared/assets`) and the repository's own
+/// (relative to the repository), with the options they run with.
+const JOBS: [(&str, &str, &[&str]); 6] = [
+    ("Fox", "shared:Fox/Fox.gltf", &[]),
+    ("CesiumMan", "shared:CesiumMan/CesiumMan.gltf", &[]),
+    (
+        "WaterBottle",
+        "shared:WaterBottle/WaterBottle.gltf",
+        &["--extra-maps"],
+    ),
+    (
+        "blub_atlas_black",
+        "shared:blub_atlas/blub_atlas_black.glb",
+        &[],
+    ),
+    (
+        "blub_atlas_dilated",
+        "shared:blub_atlas/blub_atlas_dilated.glb",
+        &[],
+    ),
+    (
+        "controller",
+        "repo:tests/assets/oculus-touch-v3/oculus-touch-v3-left.glb",
+        &[],
+    ),
+];
+
+fn repo() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+fn resolve(spec: &str) -> PathBuf {
+    match spec.split_once(':') {
+        Some(("shared", rel)) => repo().join("../shared/assets").join(rel),
+        Some(("repo", rel)) => repo().join(rel),
+        _ => PathBuf::from(spec),
+    }
+}
+
+/// One finished run of a command: wall and CPU seconds, peak MiB.
+struct Run {
+    wall: f64,
+    cpu: f64,
+    peak_mb: f64,
+}
+
+/// Runs `cmd` to its end and reads its own rusage (wait4).
+fn measure(mut cmd: Command) -> Result<Run, String> {
+    let t = Instant::now();
+    let child = cmd
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .map_err(|e| e.to_string())?;
+    let mut status = 0;
+    // SAFETY: rusage is plain data the kernel fills in.
+    let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
+    // SAFETY: the pid is our own child's, not yet waited for.
+    let pid = unsafe { libc::wait4(child.id() as i32, &mut status, 0, &mut usage) };
+    let wall = t.elapsed().as_secs_f64();
+    if pid < 0 || !libc::WIFEXITED(status) || libc::WEXITSTATUS(status) != 0 {
+        let mut err = String::new();
+        if let Some(mut e) = child.stderr {
+            let _ = std::io::Read::read_to_string(&mut e, &mut err);
+        }
+        return Err(format!("status {status}: {}", err.trim()));
+    }
+    let secs = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
+    Ok(Run {
+        wall,
+        cpu: secs(usage.ru_utime) + secs(usage.ru_stime),
+        peak_mb: usage.ru_maxrss as f64 / 1024.0,
+    })
+}
+
+/// The median run by wall time, and the report of that run.
+fn median_job(
+    model: &Path,
+    extra: &[&str],
+    out: &Path,
+    runs: usize,
+) -> Result<(Run, Value), String> {
+    let mut done = Vec::new();
+    for _ in 0..runs {
+        let _ = std::fs::remove_dir_all(out);
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_seamstress"));
+        cmd.arg("process")
+            .arg(model)
+            .arg("--out")
+            .arg(out)
+            .args(extra);
+        let run = measure(cmd)?;
+        let report: Value = std::fs::read(out.join("report.json"))
+            .ok()
+            .and_then(|b| serde_json::from_slice(&b).ok())
+            .ok_or("no report.json")?;
+        done.push((run, report));
+    }
+    done.sort_by(|a, b| a.0.wall.total_cmp(&b.0.wall));
+    Ok(done.swap_remove(runs / 2))
+}
+
+/// `nvcompress -bc1` on every erased PNG of `out` (the median of `runs`
+/// passes over all of them), in seconds; `None` without nvcompress.
+fn nvcompress(out: &Path, mips: bool, runs: usize) -> Option<f64> {
+    let pngs: Vec<PathBuf> = std::fs::read_dir(out)
+        .ok()?
+        .filter_map(|e| Some(e.ok()?.path()))
+        .filter(|p| p.to_string_lossy().ends_with(".erased.png"))
+        .collect();
+    let mut times = Vec::new();
+    for _ in 0..runs {
+        let mut total = 0.0;
+        for png in &pngs {
+            let mut cmd = Command::new("nvcompress");
+            cmd.args(["-bc1", "-nocuda", "-silent"]);
+            if !mips {
+                cmd.arg("-nomips");
+            }
+            cmd.arg(png).arg(png.with_extension("nv.dds"));
+            total += measure(cmd).ok()?.wall;
+        }
+        times.push(total);
+    }
+    times.sort_by(f64::total_cmp);
+    Some(times[runs / 2])
+}
+
+/// Stage milliseconds summed over the textures, and the texture total.
+fn stages(report: &Value) -> (Vec<(&'static str, u64)>, u64, usize) {
+    const KEYS: [&str; 8] = [
+        "seams",
+        "erase",
+        "encode",
+        "seam_aware",
+        "beside_wait",
+        "metrics",
+        "pictures",
+        "dds",
+    ];
+    let textures = report["textures"].as_array().cloned().unwrap_or_default();
+    let sum = |key: &str| {
+        textures
+            .iter()
+            .map(|t| t["timings_ms"][key].as_u64().unwrap_or(0))
+            .sum::<u64>()
+    };
+    let list = KEYS.iter().map(|k| (*k, sum(k))).collect();
+    (list, sum("total"), textures.len())
+}
+
+/// Fox's model with its texture scaled to `side`², in `dir`.
+fn scaled_fox(side: u32, dir: &Path) -> Result<PathBuf, String> {
+    let source = resolve("shared:Fox/Fox.gltf");
+    let mut gltf: Value =
+        serde_json::from_slice(&std::fs::read(&source).map_err(|e| e.to_string())?)
+            .map_err(|e| e.to_string())?;
+    let uri = gltf["images"][0]["uri"]
+        .as_str()
+        .ok_or("Fox has no image URI")?;
+    let data = uri.split_once(',').ok_or("not a data URI")?.1;
+    let png = base64::engine::general_purpose::STANDARD
+        .decode(data)
+        .map_err(|e| e.to_string())?;
+    let image = image::load_from_memory(&png).map_err(|e| e.to_string())?;
+    let scaled = image.resize_exact(side, side, image::imageops::FilterType::Triangle);
+    std::fs::create_dir_all(dir).map_err(|e| e.to_string())?;
+    let name = format!("Fox_{side}.png");
+    scaled.save(dir.join(&name)).map_err(|e| e.to_string())?;
+    gltf["images"][0] = serde_json::json!({ "uri": name });
+    let model = dir.join(format!("Fox_{side}.gltf"));
+    std::fs::write(
+        &model,
+        serde_json::to_vec(&gltf).map_err(|e| e.to_string())?,
+    )
+    .map_err(|e| e.to_string())?;
+    Ok(model)
+}
+
+fn main() {
+    let filters: Vec<String> = std::env::args()
+        .skip(1)
+        .filter(|a| !a.starts_with('-'))
+        .collect();
+    let runs = std::env::var("SEAMSTRESS_BENCH_RUNS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(RUNS)
+        .max(1);
+    let scratch = std::env::temp_dir().join(format!("seamstress-bench-job-{}", std::process::id()));
+    let mut rows: Vec<(String, PathBuf, Vec<&str>)> = Vec::new();
+    for (name, spec, extra) in JOBS {
+        for mips in [false, true] {
+            let mut args = extra.to_vec();
+            let mut label = name.to_string();
+            if mips {
+                args.push("--mips");
+                label.push_str(" --mips");
+            }
+            rows.push((label, resolve(spec), args));
+        }
+    }
+    for side in [4096, 8192] {
+        let label = format!("Fox {side}²");
+        if filters.is_empty() || filters.iter().any(|f| label.contains(f.as_str())) {
+            match scaled_fox(side, &scratch.join("models")) {
+                Ok(model) => rows.push((label, model, Vec::new())),
+                Err(e) => println!("{label}: cannot make the model: {e}"),
+            }
+        }
+    }
+    let has_nv = Command::new("nvcompress")
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .status()
+        .is_ok();
+
+    println!(
+        "{:<26} {:>3} {:>7} {:>7} {:>8} {:>7} {:>8} {:>6}  stages ms (summed over textures)",
+        "job", "tex", "wall s", "cpu s", "peak MiB", "cover", "nv s", "× nv"
+    );
+    let mut figures = std::collections::BTreeMap::new();
+    for (label, model, args) in &rows {
+        if !filters.is_empty() && !filters.iter().any(|f| label.contains(f.as_str())) {
+            continue;
+        }
+        let out = scratch.join("out");
+        let (run, report) = match median_job(model, args, &out, runs) {
+            Ok(r) => r,
+            Err(e) => {
+                println!("{label:<26} failed: {e}");
+                continue;
+            }
+        };
+        let (list, textures_ms, count) = stages(&report);
+        let load = report["textures"][0]["timings_ms"]["load"]
+            .as_u64()
+            .unwrap_or(0);
+        let cover = (load + textures_ms) as f64 / 1000.0 / run.wall;
+        let nv = if has_nv {
+            nvcompress(&out, args.contains(&"--mips"), runs)
+        } else {
+            None
+        };
+        let breakdown: Vec<String> = std::iter::once(format!("load {load}"))
+            .chain(
+                list.iter()
+                    .filter(|(_, v)| *v > 0)
+                    .map(|(k, v)| format!("{k} {v}")),
+            )
+            .collect();
+        println!(
+            "{label:<26} {count:>3} {:>7.2} {:>7.2} {:>8.0} {:>6.0}% {:>8} {:>6}  {}",
+            run.wall,
+            run.cpu,
+            run.peak_mb,
+            cover * 100.0,
+            nv.map_or("-".into(), |s| format!("{s:.2}")),
+            nv.map_or("-".into(), |s| format!("{:.1}", run.wall / s)),
+            breakdown.join(", ")
+        );
+        let largest = report["textures"]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .map(|t| t["timings_ms"]["total"].as_u64().unwrap_or(0))
+            .max()
+            .unwrap_or(0);
+        figures.insert(label.clone(), (run.wall, run.peak_mb, largest));
+        let _ = std::fs::remove_dir_all(&out);
+    }
+    let _ = std::fs::remove_dir_all(&scratch);
+
+    println!("\nwall: median of {runs} whole-process runs; cpu and peak (ru_maxrss) of that run;");
+    println!("cover: load + the textures' stage totals over the wall time (the rest is process");
+    println!("start, the report, the rewritten model and writing files); nv: nvcompress -bc1");
+    println!("-nocuda on the same erased PNGs (with mips when the row has them).");
+    let get = |k: &str| figures.get(k).copied();
+    let goal = |what: &str, value: Option<f64>, limit: f64, unit: &str| {
+        if let Some(v) = value {
+            let verdict = if v <= limit { "met" } else { "not met" };
+            println!("  {what:<44} {v:>8.2} {unit} (goal ≤ {limit}) {verdict}");
+        }
+    };
+    println!("\nGoals:");
+    goal("Fox --mips wall", get("Fox --mips").map(|f| f.0), 1.5, "s");
+    goal("Fox wall", get("Fox").map(|f| f.0), 1.0, "s");
+    for mips in ["", " --mips"] {
+        if let Some(fox) = get(&format!("Fox{mips}")) {
+            for atlas in ["blub_atlas_black", "blub_atlas_dilated"] {
+                goal(
+                    &format!("{atlas}{mips} / Fox{mips}"),
+                    get(&format!("{atlas}{mips}")).map(|a| a.0 / fox.0),
+                    2.0,
+                    "×",
+                );
+            }
+        }
+    }
+    goal("Fox 8192² wall", get("Fox 8192²").map(|f| f.0), 15.0, "s");
+    goal(
+        "Fox 8192² peak",
+        get("Fox 8192²").map(|f| f.1 / 1024.0),
+        3.0 * 1000.0 * 1000.0 * 1000.0 / (1024.0 * 1024.0 * 1024.0),
+        "GiB",
+    );
+    goal(
+        "WaterBottle wall / its largest texture's time",
+        get("WaterBottle").map(|f| f.0 / (f.2 as f64 / 1000.0)),
+        1.3,
+        "×",
+    );
+}
