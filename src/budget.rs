@@ -12,8 +12,8 @@
 //! The memory estimate is a linear model over those quantities whose
 //! coefficients were measured (peak resident memory of the default job on
 //! every shared model; `cargo bench --bench erase -- budget` prints both):
-//! the decoded inputs of every texture are held through the job, and one
-//! texture at a time is worked on.
+//! the decoded inputs of every texture are held through the job, and a
+//! texture is erased beside the encoding of the one before it.
 
 use std::fmt;
 
@@ -81,12 +81,18 @@ const ERASE_BYTES_PER_POINT: f64 = 846.0;
 /// …and per seam quadrature point and texel of the texture's side (the
 /// band along the seams).
 const ERASE_BYTES_PER_POINT_SIDE: f64 = 0.902;
-/// Its encoding: bytes per texel (set, not fitted: no model's colour-only
-/// encoding peaks, and the fit leaves it anywhere from 0 to 40 with the
-/// others unmoved)…
-const ENCODE_BYTES_PER_TEXEL: f64 = 20.0;
+/// Its encoding: bytes per texel. The level's float and stored copies, the
+/// input's and the erased texture's RGB, the PNG's bytes and two decodings
+/// of an encoding at a time (the figures of the regular encoding run beside
+/// the seam-aware search): `cube_gradient_1024`, whose band is small,
+/// peaks here at 126–132 MiB…
+const ENCODE_BYTES_PER_TEXEL: f64 = 60.0;
 /// …and per seam quadrature point (the seam-aware search's terms).
 const ENCODE_BYTES_PER_POINT: f64 = 730.0;
+/// An encoding beside the next texture's erase, per texel (its points as
+/// above): not all of it is held when the erase peaks. WaterBottle, two
+/// 2048² textures, peaks at 724–746 MiB, 139 MiB over its erase alone.
+const BESIDE_BYTES_PER_TEXEL: f64 = 30.0;
 
 /// Triangles' bounding boxes may cover this many times a texture's texels
 /// (over all levels) before the job is refused: the shared models cover
@@ -144,15 +150,35 @@ pub struct Terms {
     pub work_texels: u64,
     /// That texture's level-0 seam quadrature points.
     pub work_points: u64,
+    /// Level-0 texels and seam points of the texture whose encoding runs
+    /// beside that one's erase (the one before it; 0 for none).
+    pub beside_texels: u64,
+    pub beside_points: u64,
 }
 
 impl Terms {
     /// The estimated peak memory, bytes (saturating: a hostile plan
     /// estimates at `u64::MAX`).
     pub fn memory_bytes(&self) -> u64 {
-        (BASE_BYTES + HELD_BYTES_PER_CHANNEL_TEXEL * self.held_channel_texels + work_bytes(self))
+        (BASE_BYTES + HELD_BYTES_PER_CHANNEL_TEXEL * self.held_channel_texels + stage_bytes(self))
             as u64
     }
+}
+
+/// The working sets at the peak: the texture worked on, and the encoding
+/// of the one before beside its erase.
+fn stage_bytes(t: &Terms) -> f64 {
+    let beside = if t.beside_texels > 0 {
+        BESIDE_BYTES_PER_TEXEL * t.beside_texels as f64
+            + ENCODE_BYTES_PER_POINT * t.beside_points as f64
+    } else {
+        0.0
+    };
+    work_bytes(t) + beside
+}
+
+fn encode_bytes(texels: u64, points: u64) -> f64 {
+    ENCODE_BYTES_PER_TEXEL * texels as f64 + ENCODE_BYTES_PER_POINT * points as f64
 }
 
 /// The working set of the texture `t` describes: the larger of its erase
@@ -165,8 +191,7 @@ fn work_bytes(t: &Terms) -> f64 {
     } else {
         0.0
     };
-    let encode = ENCODE_BYTES_PER_TEXEL * texels + ENCODE_BYTES_PER_POINT * points;
-    erase.max(encode)
+    erase.max(encode_bytes(t.work_texels, t.work_points))
 }
 
 /// Counts what `plan` will cost under `opts`.
@@ -178,6 +203,9 @@ pub fn need(plan: &Plan, opts: &ProcessOptions) -> Need {
 pub fn need_and_terms(plan: &Plan, opts: &ProcessOptions) -> (Need, Terms) {
     let mut total = Need::default();
     let mut terms = Terms::default();
+    // The texture before this one: its encoding runs beside this one's
+    // erase (`pipeline::run_reporting`).
+    let mut before: Option<(u64, u64)> = None;
     for t in &plan.textures {
         let (one, level0) = texture_need(t, opts.mips);
         let channels = f64::from(t.header.channels);
@@ -186,14 +214,34 @@ pub fn need_and_terms(plan: &Plan, opts: &ProcessOptions) -> (Need, Terms) {
             held *= 4.0 / 3.0;
         }
         terms.held_channel_texels += held;
-        let this = Terms {
-            held_channel_texels: 0.0,
+        let alone = Terms {
             work_texels: level0.texels,
             work_points: level0.seam_points,
+            ..Terms::default()
         };
-        if work_bytes(&this) > work_bytes(&terms) {
-            (terms.work_texels, terms.work_points) = (this.work_texels, this.work_points);
+        let mut beside = alone;
+        if let Some((texels, points)) = before {
+            // Beside the encoding before it: its erase, not its own encoding.
+            if level0.seam_points > 0 {
+                (beside.beside_texels, beside.beside_points) = (texels, points);
+            } else {
+                beside = Terms {
+                    work_texels: texels,
+                    work_points: points,
+                    beside_texels: level0.texels,
+                    beside_points: 0,
+                    ..Terms::default()
+                };
+            }
         }
+        for this in [alone, beside] {
+            if stage_bytes(&this) > stage_bytes(&terms) {
+                (terms.work_texels, terms.work_points) = (this.work_texels, this.work_points);
+                (terms.beside_texels, terms.beside_points) =
+                    (this.beside_texels, this.beside_points);
+            }
+        }
+        before = Some((level0.texels, level0.seam_points));
         total.texels = total.texels.saturating_add(one.texels);
         total.quadrature_points = total
             .quadrature_points

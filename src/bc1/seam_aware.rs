@@ -466,6 +466,11 @@ pub fn optimise(
         // energy depends on nothing else. Later sweeps touch only the
         // blocks around those that still move.
         let waves = Layout::waves(&neighbours);
+        tracing::debug!(
+            blocks = states.len(),
+            waves = waves.len(),
+            "seam-aware schedule"
+        );
         let mut settled = vec![false; states.len()];
         let mut energy = total_energy(p, &layout, &states, opts);
         for _ in 0..opts.max_sweeps {
@@ -577,15 +582,14 @@ fn float_solve(
         for k in 0..16 {
             if let Some(t) = layout.texel(p, b, k) {
                 let m = MIX[st.idx[k] as usize];
-                let target: Vec<f64> = (0..3)
-                    .map(|ch| f64::from(p.target[t * p.channels + ch]))
-                    .collect();
+                let target: [f64; 3] =
+                    std::array::from_fn(|ch| f64::from(p.target[t * p.channels + ch]));
                 let taps = [(2 * s as u32, m[0]), (2 * s as u32 + 1, m[1])];
                 sys.add_square(weight(p, t, opts), &taps, &target, &none);
             }
         }
         for e in 0..2 {
-            let reg: Vec<f64> = (0..3).map(|ch| st.end(e, ch)).collect();
+            let reg: [f64; 3] = std::array::from_fn(|ch| st.end(e, ch));
             sys.add_anchor(REGULARISER, (2 * s + e) as u32, &reg);
         }
     }

@@ -1,13 +1,8 @@
 //! The figures of one texture's level 0: seam agreement over every seam and
 //! over the closed ones, PSNR inside the charts and per chart, per decoder.
 
-use std::collections::BTreeMap;
-
-use rayon::prelude::*;
-
 use super::alpha::{self, AlphaMetrics, AlphaPlan};
-use super::{DecoderMetrics, Metrics, PipelineError};
-use crate::bc1::Decoder;
+use super::{DecoderMetrics, Metrics};
 use crate::model::AlphaUse;
 use crate::seam::charts::{ChartFidelity, Charts};
 use crate::seam::{psnr, SeamMetric};
@@ -34,27 +29,29 @@ impl Measure<'_> {
         }
     }
 
-    /// An encoding's figures under every decoder; `decode` decodes it with
-    /// one. The decoders are measured side by side.
-    pub(super) fn per_decoder(
-        &self,
-        decode: impl Fn(Decoder) -> Result<Vec<f32>, PipelineError> + Sync,
-        input: &[f32],
-        erased: &[f32],
-    ) -> Result<BTreeMap<&'static str, DecoderMetrics>, PipelineError> {
-        Decoder::ALL
-            .par_iter()
-            .map(|&d| {
-                let data = decode(d)?;
-                let figures = DecoderMetrics {
-                    seam_rms: self.all.seam_rms(&data, 3, self.compared),
-                    seam_rms_closed: self.closed.seam_rms(&data, 3, self.compared),
-                    psnr: psnr(&data, input, 3, self.compared, self.inside),
-                    encoding_psnr: psnr(&data, erased, 3, self.compared, self.inside),
-                };
-                Ok((d.name(), figures))
-            })
-            .collect()
+    /// An encoding's figures under one decoder, from its decoding: the
+    /// seam terms and the two PSNRs side by side.
+    pub(super) fn decoder(&self, data: &[f32], input: &[f32], erased: &[f32]) -> DecoderMetrics {
+        let ((seam_rms, seam_rms_closed), (psnr_input, encoding_psnr)) = rayon::join(
+            || {
+                (
+                    self.all.seam_rms(data, 3, self.compared),
+                    self.closed.seam_rms(data, 3, self.compared),
+                )
+            },
+            || {
+                (
+                    psnr(data, input, 3, self.compared, self.inside),
+                    psnr(data, erased, 3, self.compared, self.inside),
+                )
+            },
+        );
+        DecoderMetrics {
+            seam_rms,
+            seam_rms_closed,
+            psnr: psnr_input,
+            encoding_psnr,
+        }
     }
 
     /// Alpha figures of `alpha` (one value per texel) against `input`'s

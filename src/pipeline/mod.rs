@@ -23,7 +23,7 @@ pub use options::{
     DEFAULT_SEAM_WEIGHT,
 };
 pub use progress::{NoSink, Progress, Sink, Stop};
-use texture::process_texture;
+use texture::{erase_texture, finish_texture, Erased};
 pub use texture::{BesideTimings, Timings};
 
 use std::collections::BTreeMap;
@@ -200,6 +200,20 @@ pub fn run_reporting(
     let mut textures = Vec::new();
     let mut warnings = Vec::new();
     let total = model.bindings.len();
+    let mut finish = |done: Option<Result<(TextureReport, Vec<OutputFile>), PipelineError>>| {
+        if let Some(done) = done {
+            let (report, mut out) = done?;
+            files.append(&mut out);
+            warnings.extend(harm_warning(&report, opts));
+            warnings.extend(alpha_warning(&report));
+            textures.push(report);
+        }
+        Ok::<_, PipelineError>(())
+    };
+    // Each texture's erasure runs beside the encoding of the one before:
+    // the two stages leave each other's single-thread stretches a core,
+    // and only one solver's working set, the job's largest, is held at once.
+    let mut last: Option<Erased<'_>> = None;
     for (k, binding) in model.bindings.iter().enumerate() {
         sink.progress(&Progress {
             stage: "process",
@@ -207,18 +221,14 @@ pub fn run_reporting(
             fraction: 0.1 + 0.8 * k as f64 / total as f64,
         })
         .map_err(PipelineError::Stopped)?;
-        let fitted = crate::resize::fit(binding, opts.resize);
-        let binding = fitted.as_ref().map_or(binding, |f| &f.0);
-        // The last texture's working set is freed, and this one's would
-        // land in its holes or not as the threads happen to interleave.
-        crate::heap::release_freed_memory();
-        let (mut report, mut out) = process_texture(binding, load_ms, opts)?;
-        report.resize = fitted.map(|f| f.1);
-        files.append(&mut out);
-        warnings.extend(harm_warning(&report, opts));
-        warnings.extend(alpha_warning(&report));
-        textures.push(report);
+        let (erased, done) = rayon::join(
+            || erase_texture(binding, opts),
+            || last.take().map(|e| finish_texture(e, load_ms, opts)),
+        );
+        finish(done)?;
+        last = Some(erased?);
     }
+    finish(last.map(|e| finish_texture(e, load_ms, opts)))?;
     let report = Report {
         input: input_name.to_string(),
         options: *opts,

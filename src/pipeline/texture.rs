@@ -27,6 +27,7 @@ use crate::bc1::{self, Block, Decoder};
 use crate::mips;
 use crate::model::{Texture, TextureBinding};
 use crate::picture::{seams_png, SeamPicture};
+use crate::resize::SizeChange;
 use crate::seam::{colour_channels, SeamMetric};
 
 /// Milliseconds of one texture's stages. The stages on the texture's
@@ -41,6 +42,9 @@ pub struct Timings {
     pub seams: u64,
     /// Erasing level 0's seams.
     pub erase: u64,
+    /// Waiting, once erased, for the texture before it to finish (the
+    /// next texture's erasure runs beside the last one's encoding).
+    pub waited: u64,
     /// Level 0's regular BC1 encoding.
     pub encode: u64,
     /// Level 0's seam-aware search.
@@ -73,22 +77,36 @@ fn ms_since(t: Instant) -> u64 {
     t.elapsed().as_millis() as u64
 }
 
-pub(super) fn process_texture(
-    b: &TextureBinding,
-    load_ms: u64,
+/// A texture whose level 0 is erased: what [`finish`] goes on from.
+pub(super) struct Erased<'a> {
+    original: &'a TextureBinding,
+    /// The texture brought to the size it is processed at, when it was.
+    fitted: Option<(TextureBinding, SizeChange)>,
+    plan: Option<AlphaPlan>,
+    level0: ErasedLevel,
+    started: Instant,
+    erased_at: Instant,
+}
+
+impl Erased<'_> {
+    fn binding(&self) -> &TextureBinding {
+        self.fitted.as_ref().map_or(self.original, |f| &f.0)
+    }
+}
+
+/// The first stage of a texture: brought to size, its level 0's seams
+/// judged and erased. The solver's working set is the largest of the job.
+pub(super) fn erase_texture<'a>(
+    original: &'a TextureBinding,
     opts: &ProcessOptions,
-) -> Result<(TextureReport, Vec<OutputFile>), PipelineError> {
+) -> Result<Erased<'a>, PipelineError> {
     let started = Instant::now();
-    let tex = &b.texture;
+    let fitted = crate::resize::fit(original, opts.resize);
+    let b = fitted.as_ref().map_or(original, |f| &f.0);
     let span = tracing::info_span!("texture", image = b.image, name = %b.name);
     let _guard = span.enter();
-    let encode_err = |message: String| PipelineError::Encode {
-        name: b.name.clone(),
-        message,
-    };
-
     let plan = alpha::plan(b, opts.alpha);
-    let level0 = erase_level(b, tex, opts, plan.is_some_and(|p| p.erase))?;
+    let level0 = erase_level(b, &b.texture, opts, plan.is_some_and(|p| p.erase))?;
     // The solver's working set is freed now and the encoder's has another
     // shape: given back rather than left as holes, the process's peak
     // follows the memory in use (see `heap`).
@@ -101,6 +119,33 @@ pub(super) fn process_texture(
         peak_mb = crate::heap::peak_resident_mb(),
         "seams erased"
     );
+    Ok(Erased {
+        original,
+        fitted,
+        plan,
+        level0,
+        started,
+        erased_at: Instant::now(),
+    })
+}
+
+/// The rest of a texture after [`erase_texture`]: its encodings, figures,
+/// smaller mip levels and files.
+pub(super) fn finish_texture(
+    erased: Erased<'_>,
+    load_ms: u64,
+    opts: &ProcessOptions,
+) -> Result<(TextureReport, Vec<OutputFile>), PipelineError> {
+    let waited = ms_since(erased.erased_at);
+    let b = erased.binding();
+    let (level0, plan, started) = (&erased.level0, erased.plan, erased.started);
+    let tex = &b.texture;
+    let span = tracing::info_span!("texture", image = b.image, name = %b.name);
+    let _guard = span.enter();
+    let encode_err = |message: String| PipelineError::Encode {
+        name: b.name.clone(),
+        message,
+    };
     let measure = Measure {
         all: SeamMetric::new(&level0.grid, &level0.seams),
         closed: SeamMetric::new(&level0.grid, &level0.closed),
@@ -128,11 +173,11 @@ pub(super) fn process_texture(
             if !dds {
                 return Ok(None);
             }
-            let regular = encode_regular(b, &level0, opts, plan.as_ref())?;
+            let regular = encode_regular(b, level0, opts, plan.as_ref())?;
             let t = Instant::now();
             // The regular encoding's figures need nothing of the search.
             let (shipped, regular_figures) = rayon::join(
-                || encode_seam_aware(b, &level0, &regular, opts, plan.as_ref()),
+                || encode_seam_aware(b, level0, &regular, opts, plan.as_ref()),
                 || figures.of(&regular.blocks, regular.clear.as_deref()),
             );
             let (shipped, regular_figures) = (shipped?, regular_figures?);
@@ -143,14 +188,13 @@ pub(super) fn process_texture(
                 searched_ms,
             )))
         },
-        || Beside::run(b, &level0, &measure, alphas.as_ref(), opts, plan.as_ref()),
+        || Beside::run(b, level0, &measure, alphas.as_ref(), opts, plan.as_ref()),
     );
     let (first, side) = (first?, side?);
     let (encode_ms, seam_aware_ms) = first
         .as_ref()
         .map_or((0, 0), |(e, _, searched_ms)| (e.encode_ms, *searched_ms));
     let beside_wait = ms_since(t).saturating_sub(encode_ms + seam_aware_ms);
-    crate::heap::release_freed_memory();
 
     let erased_name = format!("{}.erased.png", b.name);
     let mut files = vec![OutputFile {
@@ -162,10 +206,10 @@ pub(super) fn process_texture(
         name: b.name.clone(),
         width: tex.width,
         height: tex.height,
-        resize: None,
+        resize: erased.fitted.as_ref().map(|f| f.1),
         alpha: side.alpha,
         seam_edges: level0.seams.seams.len(),
-        seams: seam_summary(&level0, opts),
+        seams: seam_summary(level0, opts),
         input: side.input,
         erased: side.erased,
         bc1: None,
@@ -180,6 +224,7 @@ pub(super) fn process_texture(
             load: load_ms,
             seams: level0.seams_ms,
             erase: level0.erase_ms,
+            waited,
             encode: encode_ms,
             seam_aware: seam_aware_ms,
             beside_wait,
@@ -411,15 +456,28 @@ impl Figures<'_> {
         Ok(rgb)
     }
 
-    /// The figures of an encoding of level 0.
+    /// The figures of an encoding of level 0. One decoding at a time is
+    /// held besides the ideal one: at 8192² each is 768 MiB.
     fn of(&self, blocks: &[Block], clear: Option<&[bool]>) -> Result<Measured, PipelineError> {
         let ideal = self.decode(blocks, clear, Decoder::Ideal)?;
-        let mut metrics = self.measure.against(&ideal, 3, self.input_rgb);
-        metrics.decoders = Some(self.measure.per_decoder(
-            |d| self.decode(blocks, clear, d),
-            self.input_rgb,
-            self.erased_rgb,
-        )?);
+        let (mut metrics, ideal_figures) = rayon::join(
+            || self.measure.against(&ideal, 3, self.input_rgb),
+            || {
+                self.measure
+                    .decoder(&ideal, self.input_rgb, self.erased_rgb)
+            },
+        );
+        let mut per = std::collections::BTreeMap::new();
+        for d in Decoder::ALL {
+            let figures = if d == Decoder::Ideal {
+                ideal_figures
+            } else {
+                let data = self.decode(blocks, clear, d)?;
+                self.measure.decoder(&data, self.input_rgb, self.erased_rgb)
+            };
+            per.insert(d.name(), figures);
+        }
+        metrics.decoders = Some(per);
         Ok(Measured { metrics, ideal })
     }
 }
