@@ -77,7 +77,7 @@ fn ms_since(t: Instant) -> u64 {
     t.elapsed().as_millis() as u64
 }
 
-/// A texture whose level 0 is erased: what [`finish`] goes on from.
+/// A texture whose level 0 is erased: what [`finish_texture`] goes on from.
 pub(super) struct Erased<'a> {
     original: &'a TextureBinding,
     /// The texture brought to the size it is processed at, when it was.
