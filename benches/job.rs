@@ -231,6 +231,23 @@ fn scaled_fox(side: u32, dir: &Path) -> Result<PathBuf, String> {
 }
 
 fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    if let [_, flag, side, dir] = &args[..] {
+        if flag == "--make-fox" {
+            match side
+                .parse()
+                .map_err(|_| "bad side".to_string())
+                .and_then(|side| scaled_fox(side, Path::new(dir)))
+            {
+                Ok(model) => println!("{}", model.display()),
+                Err(e) => {
+                    println!("{e}");
+                    std::process::exit(1);
+                }
+            }
+            return;
+        }
+    }
     let filters: Vec<String> = std::env::args()
         .skip(1)
         .filter(|a| !a.starts_with('-'))
@@ -263,7 +280,27 @@ fn main() {
     for side in [4096, 8192] {
         let label = format!("Fox {side}²");
         if filters.is_empty() || filters.iter().any(|f| label.contains(f.as_str())) {
-            match scaled_fox(side, &scratch.join("models")) {
+            // Made by a child process: an 8192² image held here would be
+            // counted in the peak of every job forked after it.
+            let dir = scratch.join("models");
+            let made = std::env::current_exe()
+                .map_err(|e| e.to_string())
+                .and_then(|exe| {
+                    Command::new(exe)
+                        .args(["--make-fox", &side.to_string()])
+                        .arg(&dir)
+                        .output()
+                        .map_err(|e| e.to_string())
+                })
+                .and_then(|o| {
+                    let text = String::from_utf8_lossy(&o.stdout).trim().to_string();
+                    if o.status.success() {
+                        Ok(PathBuf::from(text))
+                    } else {
+                        Err(format!("{text} {}", String::from_utf8_lossy(&o.stderr)))
+                    }
+                });
+            match made {
                 Ok(model) => rows.push((label, model, Vec::new())),
                 Err(e) => println!("{label}: cannot make the model: {e}"),
             }
