@@ -26,8 +26,10 @@
 //! the threads' interleaving happened to put each block: blub's job peaked
 //! anywhere in 599–652 MiB with 445 MiB in use at most. So a job hands its
 //! free pages back ([`release_freed_memory`]) where one working set ends
-//! and a differently shaped one begins: before each texture, after each
-//! band's system is solved, after the erase, after the encoding. The peak
+//! and a differently shaped one begins: after each band's system is solved
+//! and after the erase (the encoding's pieces, decodings among them, reuse
+//! each other's blocks, and a texture's erase runs beside the encoding of
+//! the one before it, so there is no later point where one set ends). The peak
 //! then follows the memory in use, which is what the budget can estimate:
 //! over 12 runs each, blub 447–451 MiB, Fox 595–601 from 594–666,
 //! WaterBottle 639–666 from 686–842, cube_gradient_1024 121–124 from
