@@ -53,6 +53,17 @@ impl Decoder {
         [f32::from(a), f32::from(b), e2, e3]
     }
 
+    /// [`Decoder::palette`] of four-colour mode, from a table made once:
+    /// endpoint searches score thousands of candidate pairs per block row
+    /// (25 pairs × 3 channels × up to 4 rounds per block when retargeting;
+    /// some 700 per block and sweep in the seam-aware search), and a lookup
+    /// is 8× faster on Fox than the integer formulas.
+    #[inline]
+    pub fn four_colour_palette(self, ch: usize, x0: u8, x1: u8) -> [f32; 4] {
+        let d = Decoder::ALL.iter().position(|&a| a == self).unwrap_or(0);
+        four_colour_palettes()[((d * 3 + ch) * SIDE + x0 as usize) * SIDE + x1 as usize]
+    }
+
     /// Entry 2 of four-colour mode: two thirds of `a`, one third of `b`.
     fn third(self, ch: usize, x0: u8, x1: u8, a: u8, b: u8) -> f32 {
         let (x0, x1, a, b) = (u32::from(x0), u32::from(x1), i32::from(a), i32::from(b));
@@ -171,6 +182,31 @@ fn expand(ch: usize, x: u8) -> u8 {
     } else {
         (x << 3) | (x >> 2)
     }
+}
+
+/// Endpoint fields per side of the palette table: 6-bit green's 64 (5-bit
+/// channels use the first 32 × 32).
+const SIDE: usize = 64;
+
+/// Per decoder (in [`Decoder::ALL`] order) and channel: every pair's
+/// four-colour palette, 64 × 64 pairs.
+fn four_colour_palettes() -> &'static [[f32; 4]] {
+    static TABLE: std::sync::OnceLock<Vec<[f32; 4]>> = std::sync::OnceLock::new();
+    TABLE.get_or_init(|| {
+        let mut entries = vec![[0.0; 4]; Decoder::ALL.len() * 3 * SIDE * SIDE];
+        for (d, dec) in Decoder::ALL.iter().enumerate() {
+            for ch in 0..3 {
+                let top = if ch == 1 { 64 } else { 32 };
+                for x0 in 0..top {
+                    for x1 in 0..top {
+                        entries[((d * 3 + ch) * SIDE + x0) * SIDE + x1] =
+                            dec.palette(true, ch, x0 as u8, x1 as u8);
+                    }
+                }
+            }
+        }
+        entries
+    })
 }
 
 #[cfg(test)]

@@ -229,53 +229,10 @@ fn expand(q: i32, ch: usize) -> f64 {
 }
 
 /// One channel's four-colour palette under `dec`, in \[0, 1\].
+#[inline]
 fn channel_palette(dec: Decoder, ch: usize, q0: i32, q1: i32) -> [f64; 4] {
-    palette_table().get(dec, ch, q0, q1)
-}
-
-/// Every four-colour palette of every decoder, in \[0, 1\]: the endpoint
-/// search scores some 700 candidate palettes per block and sweep, and the
-/// decoders' integer formulas cost more than a lookup. Red and blue share a
-/// table (same bits, same formulas); 3 × (32² + 64²) entries, 480 KiB.
-struct PaletteTable {
-    /// Per decoder: the 5-bit channels' 32×32 palettes, then the 6-bit
-    /// channel's 64×64.
-    entries: Vec<[f64; 4]>,
-}
-
-const PALETTES_PER_DECODER: usize = 32 * 32 + 64 * 64;
-
-impl PaletteTable {
-    fn build() -> Self {
-        let mut entries = Vec::with_capacity(Decoder::ALL.len() * PALETTES_PER_DECODER);
-        for dec in Decoder::ALL {
-            for ch in [0, 1] {
-                let n = 1u8 << BITS[ch];
-                for q0 in 0..n {
-                    for q1 in 0..n {
-                        entries.push(dec.palette(true, ch, q0, q1).map(|v| f64::from(v) / 255.0));
-                    }
-                }
-            }
-        }
-        PaletteTable { entries }
-    }
-
-    #[inline]
-    fn get(&self, dec: Decoder, ch: usize, q0: i32, q1: i32) -> [f64; 4] {
-        let d = dec as usize * PALETTES_PER_DECODER;
-        let at = if ch == 1 {
-            d + 32 * 32 + ((q0 as usize) << 6 | q1 as usize)
-        } else {
-            d + ((q0 as usize) << 5 | q1 as usize)
-        };
-        self.entries[at]
-    }
-}
-
-fn palette_table() -> &'static PaletteTable {
-    static TABLE: std::sync::OnceLock<PaletteTable> = std::sync::OnceLock::new();
-    TABLE.get_or_init(PaletteTable::build)
+    dec.four_colour_palette(ch, q0 as u8, q1 as u8)
+        .map(|v| f64::from(v) / 255.0)
 }
 
 /// Positions in [`Decoder::ALL`] of the decoders `target` scores under.
