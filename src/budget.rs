@@ -221,18 +221,7 @@ pub fn need_and_terms(plan: &Plan, opts: &ProcessOptions) -> (Need, Terms) {
         };
         let mut beside = alone;
         if let Some((texels, points)) = before {
-            // Beside the encoding before it: its erase, not its own encoding.
-            if level0.seam_points > 0 {
-                (beside.beside_texels, beside.beside_points) = (texels, points);
-            } else {
-                beside = Terms {
-                    work_texels: texels,
-                    work_points: points,
-                    beside_texels: level0.texels,
-                    beside_points: 0,
-                    ..Terms::default()
-                };
-            }
+            (beside.beside_texels, beside.beside_points) = (texels, points);
         }
         for this in [alone, beside] {
             if stage_bytes(&this) > stage_bytes(&terms) {
