@@ -20,6 +20,8 @@ use seamstress::model::{self, LoadOptions};
 use seamstress::pipeline::{self, Format, Method, ProcessOptions};
 use seamstress::seam::erase::Mode;
 
+mod common;
+
 const MODELS: [&str; 3] = ["blub/blub.glb", "Fox/Fox.gltf", "CesiumMan/CesiumMan.gltf"];
 /// Runs per row; the row shows the median one (this machine's speed varies by
 /// 10–20% from one run to the next).
@@ -109,30 +111,11 @@ fn estimate(rel: &str) -> Result<(seamstress::budget::Need, seamstress::budget::
 fn binary_peak_mb(rel: &str) -> Result<f64, String> {
     let out = std::env::temp_dir().join(format!("seamstress-budget-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&out);
-    let child = Command::new(env!("CARGO_BIN_EXE_seamstress"))
-        .arg("process")
-        .arg(asset(rel))
-        .arg("--out")
-        .arg(&out)
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .map_err(|e| e.to_string())?;
-    // Waited for with wait4, not `Child::wait`, for the child's own rusage.
-    let mut status = 0;
-    // SAFETY: rusage is plain data the kernel fills in.
-    let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
-    // SAFETY: the pid is our own child's, not yet waited for.
-    let pid = unsafe { libc::wait4(child.id() as i32, &mut status, 0, &mut usage) };
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_seamstress"));
+    cmd.arg("process").arg(asset(rel)).arg("--out").arg(&out);
+    let run = common::measure(cmd);
     let _ = std::fs::remove_dir_all(&out);
-    if pid < 0 || !libc::WIFEXITED(status) || libc::WEXITSTATUS(status) != 0 {
-        let mut err = String::new();
-        if let Some(mut e) = child.stderr {
-            let _ = std::io::Read::read_to_string(&mut e, &mut err);
-        }
-        return Err(format!("status {status}: {}", err.trim()));
-    }
-    Ok(usage.ru_maxrss as f64 / 1024.0)
+    Ok(run?.peak_mb)
 }
 
 fn budget_table() {
