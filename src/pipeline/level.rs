@@ -283,13 +283,8 @@ pub(super) fn encode_regular(
         }
         _ => None,
     };
-    let mut blocks =
-        bc1::encode_image_for(&rgb, w, h, 3, opts.bc1_level, opts.decoder).map_err(|e| {
-            PipelineError::Encode {
-                name: b.name.clone(),
-                message: e.to_string(),
-            }
-        })?;
+    let mut blocks = bc1::encode_image_for(&rgb, w, h, 3, opts.bc1_level, opts.decoder)
+        .map_err(|e| PipelineError::encode(&b.name, e))?;
     if let Some(clear) = &clear {
         punch_through(&mut blocks, &rgb, clear, w, h, opts.decoder);
     }

@@ -57,6 +57,16 @@ pub enum PipelineError {
     Stopped(Stop),
 }
 
+impl PipelineError {
+    /// A texture's file or encoding could not be made.
+    fn encode(name: &str, e: impl std::fmt::Display) -> Self {
+        PipelineError::Encode {
+            name: name.to_string(),
+            message: e.to_string(),
+        }
+    }
+}
+
 /// Seam and fidelity figures for one version of a texture.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct Metrics {

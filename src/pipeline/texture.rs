@@ -142,10 +142,6 @@ pub(super) fn finish_texture(
     let tex = &b.texture;
     let span = tracing::info_span!("texture", image = b.image, name = %b.name);
     let _guard = span.enter();
-    let encode_err = |message: String| PipelineError::Encode {
-        name: b.name.clone(),
-        message,
-    };
     let measure = Measure {
         all: SeamMetric::new(&level0.grid, &level0.seams),
         closed: SeamMetric::new(&level0.grid, &level0.closed),
@@ -296,7 +292,7 @@ pub(super) fn finish_texture(
         let name = format!("{}.seams.png", b.name);
         files.push(OutputFile {
             name: name.clone(),
-            bytes: seams_png(&picture).map_err(|e| encode_err(e.to_string()))?,
+            bytes: seams_png(&picture).map_err(|e| PipelineError::encode(&b.name, e))?,
         });
         report.files.seams = Some(name);
         report.timings_ms.pictures = ms_since(t);
@@ -360,10 +356,7 @@ impl Beside {
         );
         let (smaller, mips_ms) = smaller;
         Ok(Beside {
-            png: png.map_err(|e| PipelineError::Encode {
-                name: b.name.clone(),
-                message: e.to_string(),
-            })?,
+            png: png.map_err(|e| PipelineError::encode(&b.name, e))?,
             input,
             erased,
             alpha,
@@ -441,13 +434,8 @@ impl Figures<'_> {
         clear: Option<&[bool]>,
         d: Decoder,
     ) -> Result<Vec<f32>, PipelineError> {
-        let mut rgb =
-            bc1::decode_image_with(blocks, self.tex.width, self.tex.height, d).map_err(|e| {
-                PipelineError::Encode {
-                    name: self.name.to_string(),
-                    message: e.to_string(),
-                }
-            })?;
+        let mut rgb = bc1::decode_image_with(blocks, self.tex.width, self.tex.height, d)
+            .map_err(|e| PipelineError::encode(self.name, e))?;
         if let Some(clear) = clear {
             for (t, _) in clear.iter().enumerate().filter(|(_, c)| **c) {
                 rgb[t * 3..t * 3 + 3].copy_from_slice(&self.erased_rgb[t * 3..t * 3 + 3]);
@@ -542,8 +530,5 @@ fn dds_file(
     } else {
         DdsHeaderKind::Legacy
     };
-    write_dds(levels, header).map_err(|e| PipelineError::Encode {
-        name: b.name.clone(),
-        message: e.to_string(),
-    })
+    write_dds(levels, header).map_err(|e| PipelineError::encode(&b.name, e))
 }
