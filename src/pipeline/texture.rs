@@ -165,31 +165,16 @@ pub(super) fn finish_texture(
 
     let t = Instant::now();
     let (first, side) = rayon::join(
-        || -> Result<_, PipelineError> {
-            if !dds {
-                return Ok(None);
-            }
-            let regular = encode_regular(b, level0, opts, plan.as_ref())?;
-            let t = Instant::now();
-            // The regular encoding's figures need nothing of the search.
-            let (shipped, regular_figures) = rayon::join(
-                || encode_seam_aware(b, level0, &regular, opts, plan.as_ref()),
-                || figures.of(&regular.blocks, regular.clear.as_deref()),
-            );
-            let (shipped, regular_figures) = (shipped?, regular_figures?);
-            let searched_ms = ms_since(t);
-            Ok(Some((
-                EncodedLevel::new(regular, shipped),
-                regular_figures,
-                searched_ms,
-            )))
+        || {
+            dds.then(|| encode_level0(b, level0, opts, plan.as_ref(), &figures))
+                .transpose()
         },
         || Beside::run(b, level0, &measure, alphas.as_ref(), opts, plan.as_ref()),
     );
     let (first, side) = (first?, side?);
     let (encode_ms, seam_aware_ms) = first
         .as_ref()
-        .map_or((0, 0), |(e, _, searched_ms)| (e.encode_ms, *searched_ms));
+        .map_or((0, 0), |f| (f.enc.encode_ms, f.searched_ms));
     let beside_wait = ms_since(t).saturating_sub(encode_ms + seam_aware_ms);
 
     let erased_name = format!("{}.erased.png", b.name);
@@ -231,7 +216,7 @@ pub(super) fn finish_texture(
     };
 
     let mut decoded = None;
-    if let Some((enc, regular, _)) = first {
+    if let Some(Level0 { enc, regular, .. }) = first {
         let t = Instant::now();
         let shipped = figures.of(&enc.shipped, enc.clear.as_deref())?;
         report.bc1 = Some(regular.metrics);
@@ -300,6 +285,37 @@ pub(super) fn finish_texture(
     report.timings_ms.total = ms_since(started);
     tracing::debug!(peak_mb = crate::heap::peak_resident_mb(), "texture done");
     Ok((report, files))
+}
+
+/// Level 0 encoded, with the regular encoding's figures.
+struct Level0 {
+    enc: EncodedLevel,
+    regular: Measured,
+    /// The seam-aware search's time, with the regular figures beside it.
+    searched_ms: u64,
+}
+
+/// Level 0's regular encoding, then its seam-aware search with the regular
+/// encoding's figures beside it (they need nothing of the search).
+fn encode_level0(
+    b: &TextureBinding,
+    level0: &ErasedLevel,
+    opts: &ProcessOptions,
+    plan: Option<&AlphaPlan>,
+    figures: &Figures<'_>,
+) -> Result<Level0, PipelineError> {
+    let regular = encode_regular(b, level0, opts, plan)?;
+    let t = Instant::now();
+    let (shipped, regular_figures) = rayon::join(
+        || encode_seam_aware(b, level0, &regular, opts, plan),
+        || figures.of(&regular.blocks, regular.clear.as_deref()),
+    );
+    let (shipped, regular_figures) = (shipped?, regular_figures?);
+    Ok(Level0 {
+        searched_ms: ms_since(t),
+        enc: EncodedLevel::new(regular, shipped),
+        regular: regular_figures,
+    })
 }
 
 /// What runs beside level 0's encoding, and what it made.
