@@ -60,8 +60,20 @@ impl Decoder {
     /// is 8× faster on Fox than the integer formulas.
     #[inline]
     pub fn four_colour_palette(self, ch: usize, x0: u8, x1: u8) -> [f32; 4] {
+        four_colour_palettes().levels[self.palette_at(ch, x0, x1)]
+    }
+
+    /// [`Decoder::four_colour_palette`] in \[0, 1\] (each value / 255), as
+    /// the seam-aware search's f64 energies take it.
+    #[inline]
+    pub fn four_colour_palette_unit(self, ch: usize, x0: u8, x1: u8) -> [f64; 4] {
+        four_colour_palettes().unit[self.palette_at(ch, x0, x1)]
+    }
+
+    #[inline]
+    fn palette_at(self, ch: usize, x0: u8, x1: u8) -> usize {
         let d = Decoder::ALL.iter().position(|&a| a == self).unwrap_or(0);
-        four_colour_palettes()[((d * 3 + ch) * SIDE + x0 as usize) * SIDE + x1 as usize]
+        ((d * 3 + ch) * SIDE + x0 as usize) * SIDE + x1 as usize
     }
 
     /// Entry 2 of four-colour mode: two thirds of `a`, one third of `b`.
@@ -189,29 +201,55 @@ fn expand(ch: usize, x: u8) -> u8 {
 const SIDE: usize = 64;
 
 /// Per decoder (in [`Decoder::ALL`] order) and channel: every pair's
-/// four-colour palette, 64 × 64 pairs.
-fn four_colour_palettes() -> &'static [[f32; 4]] {
-    static TABLE: std::sync::OnceLock<Vec<[f32; 4]>> = std::sync::OnceLock::new();
+/// four-colour palette, 64 × 64 pairs, on 0..255 and in \[0, 1\].
+struct FourColourPalettes {
+    levels: Vec<[f32; 4]>,
+    unit: Vec<[f64; 4]>,
+}
+
+fn four_colour_palettes() -> &'static FourColourPalettes {
+    static TABLE: std::sync::OnceLock<FourColourPalettes> = std::sync::OnceLock::new();
     TABLE.get_or_init(|| {
-        let mut entries = vec![[0.0; 4]; Decoder::ALL.len() * 3 * SIDE * SIDE];
+        let mut levels = vec![[0.0; 4]; Decoder::ALL.len() * 3 * SIDE * SIDE];
         for (d, dec) in Decoder::ALL.iter().enumerate() {
             for ch in 0..3 {
                 let top = if ch == 1 { 64 } else { 32 };
                 for x0 in 0..top {
                     for x1 in 0..top {
-                        entries[((d * 3 + ch) * SIDE + x0) * SIDE + x1] =
+                        levels[((d * 3 + ch) * SIDE + x0) * SIDE + x1] =
                             dec.palette(true, ch, x0 as u8, x1 as u8);
                     }
                 }
             }
         }
-        entries
+        let unit = levels
+            .iter()
+            .map(|p| p.map(|v| f64::from(v) / 255.0))
+            .collect();
+        FourColourPalettes { levels, unit }
     })
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_palette_table_is_the_formulas() {
+        for dec in Decoder::ALL {
+            for ch in 0..3 {
+                let top = if ch == 1 { 64 } else { 32 };
+                for x0 in 0..top {
+                    for x1 in 0..top {
+                        let p = dec.palette(true, ch, x0, x1);
+                        assert_eq!(dec.four_colour_palette(ch, x0, x1), p);
+                        let unit = dec.four_colour_palette_unit(ch, x0, x1);
+                        assert_eq!(unit, p.map(|v| f64::from(v) / 255.0));
+                    }
+                }
+            }
+        }
+    }
 
     /// Every line of the table read from an NVIDIA H200's texture unit.
     #[test]

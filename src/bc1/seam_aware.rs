@@ -231,8 +231,7 @@ fn expand(q: i32, ch: usize) -> f64 {
 /// One channel's four-colour palette under `dec`, in \[0, 1\].
 #[inline]
 fn channel_palette(dec: Decoder, ch: usize, q0: i32, q1: i32) -> [f64; 4] {
-    dec.four_colour_palette(ch, q0 as u8, q1 as u8)
-        .map(|v| f64::from(v) / 255.0)
+    dec.four_colour_palette_unit(ch, q0 as u8, q1 as u8)
 }
 
 /// Positions in [`Decoder::ALL`] of the decoders `target` scores under.
