@@ -21,7 +21,9 @@ use super::app::{blocking, Shared, CANCELED};
 use super::callback;
 use super::data_dir;
 use super::engine;
+use super::error::STORE_RETRY_AFTER_S;
 use super::error::{self, ApiError};
+use super::health::Dependency;
 use super::job::{self, is_job_id, now_ms, random_id, InputInfo, Job, JobState, Progress};
 use super::store::{keys, StoreError, Submitted};
 use super::upload::{base_name, safe_name, Bundle};
@@ -57,6 +59,7 @@ pub fn router(app: Shared) -> Router {
     let limit = app.cfg.max_body;
     r.fallback(fallback)
         .layer(DefaultBodyLimit::max(limit))
+        .layer(middleware::from_fn_with_state(app.clone(), store_gate))
         .layer(middleware::from_fn_with_state(app.clone(), request_context))
         .layer(tower_http::catch_panic::CatchPanicLayer::custom(
             |_: Box<dyn std::any::Any + Send>| {
@@ -78,6 +81,26 @@ pub fn operations_router(app: Shared) -> Router {
 
 async fn fallback() -> ApiError {
     ApiError::not_found("no such route")
+}
+
+/// Answers 503 at once when a store the request needs is known to be
+/// away, instead of holding the client while the store does not answer.
+/// Health, metrics and the OpenAPI document need no store and are served.
+async fn store_gate(State(app): State<Shared>, req: Request, next: Next) -> Response {
+    let path = req.uri().path();
+    if path.starts_with("/v1/") {
+        let needs_files = req.method() != Method::GET || path.contains("/files/");
+        let needs: &[Dependency] = if needs_files {
+            &[Dependency::Jobs, Dependency::Files]
+        } else {
+            &[Dependency::Jobs]
+        };
+        if let Some(down) = app.health.down_among(needs) {
+            return ApiError::unavailable("store_unavailable", down.message(), STORE_RETRY_AFTER_S)
+                .into_response();
+        }
+    }
+    next.run(req).await
 }
 
 /// Request ids, one log line per request, and JSON bodies for the errors
@@ -549,6 +572,8 @@ async fn submit(
         files: Vec::new(),
         cached_from: None,
         attempts: 0,
+        interruptions: 0,
+        lost_leases: 0,
         warnings: Vec::new(),
         callback,
         worker: None,
@@ -810,25 +835,35 @@ async fn readyz(State(app): State<Shared>) -> Result<Response, ApiError> {
         ));
     }
     // Both stores must answer: a server that cannot reach either can take
-    // no job in, nor hand one out.
-    let down = blocking(&app, |a| {
-        Ok([
-            ("job store", a.jobs.check()),
-            ("file store", a.files.check()),
-        ]
-        .into_iter()
-        .find_map(|(which, r)| r.err().map(|e| format!("the {which} does not answer: {e}"))))
-    })
-    .await?;
-    if let Some(message) = down {
-        return Err(ApiError::unavailable("store_unavailable", message, 5));
+    // no job in, nor hand one out. The prober has asked them within the
+    // last second; asking again here would hold the probe as long as a
+    // store that does not answer holds it.
+    if let Some(down) = app
+        .health
+        .down_among(&[Dependency::Jobs, Dependency::Files])
+    {
+        return Err(ApiError::unavailable(
+            "store_unavailable",
+            down.message(),
+            STORE_RETRY_AFTER_S,
+        ));
     }
     Ok(Json(json!({ "status": "ready" })).into_response())
 }
 
 async fn metrics(State(app): State<Shared>) -> Result<Response, ApiError> {
-    let counts = blocking(&app, |a| Ok(a.jobs.counts()?)).await?;
-    let text = app.metrics.render(&counts, app.cfg.workers);
+    // Without the job store, the job counts are left out and the rest is
+    // served: an outage is when the metrics matter most.
+    let counts = if app.health.down_among(&[Dependency::Jobs]).is_some() {
+        None
+    } else {
+        blocking(&app, |a| Ok(a.jobs.counts().ok())).await?
+    };
+    let up: Vec<(&str, bool)> = Dependency::ALL
+        .iter()
+        .map(|&d| (d.name(), app.health.down_among(&[d]).is_none()))
+        .collect();
+    let text = app.metrics.render(counts.as_ref(), &up, app.cfg.workers);
     Ok((
         [(
             header::CONTENT_TYPE,

@@ -9,6 +9,7 @@ use tokio::sync::{watch, Notify};
 use super::config::Config;
 use super::engine::Stop;
 use super::error::ApiError;
+use super::health::Health;
 use super::metrics::Metrics;
 use super::store::{FileStore, JobStore};
 
@@ -32,6 +33,8 @@ pub struct App {
     pub jobs: Arc<dyn JobStore>,
     pub files: Arc<dyn FileStore>,
     pub metrics: Metrics,
+    /// Whether the stores and the disk answer, as last probed.
+    pub health: Health,
     /// Bumped whenever a job reaches a final state; `Prefer: wait` listens.
     pub finished: watch::Sender<u64>,
     /// Wakes an idle worker when a job is queued.
@@ -61,6 +64,7 @@ impl App {
             jobs,
             files,
             metrics: Metrics::default(),
+            health: Health::default(),
             finished: watch::channel(0).0,
             work: Notify::new(),
             stopping: watch::channel(false).0,

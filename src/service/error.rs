@@ -5,6 +5,11 @@ use axum::response::{IntoResponse, Response};
 
 use super::store::StoreError;
 
+/// What `Retry-After` says while a store is away: the prober looks four
+/// times a second then, so a client coming back this soon finds it back
+/// if it is.
+pub const STORE_RETRY_AFTER_S: u64 = 5;
+
 #[derive(Debug)]
 pub struct ApiError {
     pub status: StatusCode,
@@ -71,6 +76,14 @@ impl From<StoreError> for ApiError {
                     "the server's storage is full; try again later",
                 )
             };
+        }
+        if let StoreError::Unavailable { which, .. } = &e {
+            tracing::warn!(error = %e, "store unavailable");
+            return ApiError::unavailable(
+                "store_unavailable",
+                format!("the {which} does not answer; try again shortly"),
+                STORE_RETRY_AFTER_S,
+            );
         }
         tracing::error!(error = %e, "store failure");
         ApiError::internal("the job store failed; try again")

@@ -18,6 +18,9 @@ fn io_err(what: &str, path: &Path, e: io::Error) -> StoreError {
     let message = format!("{what} {}: {e}", path.display());
     if super::store::is_full(&e) {
         StoreError::Full(message)
+    } else if e.raw_os_error() == Some(libc::EIO) {
+        // The disk failed the read or write, not the request.
+        StoreError::files_unavailable(message)
     } else {
         StoreError::Files(message)
     }

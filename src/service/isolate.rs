@@ -12,6 +12,7 @@
 //! without an outcome has crashed: the worker's caller retries it once.
 
 use std::io::{BufRead, BufReader, Read};
+use std::os::unix::ffi::OsStrExt;
 use std::os::unix::process::{CommandExt, ExitStatusExt};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -127,8 +128,9 @@ pub fn run(
         .stdout(Stdio::piped())
         .stderr(Stdio::piped());
     let limit = iso.address_space;
-    // SAFETY: setrlimit and prctl are async-signal-safe and touch only the
-    // child.
+    let parent = std::process::id();
+    // SAFETY: setrlimit, prctl, getppid and _exit are async-signal-safe and
+    // touch only the child.
     unsafe {
         cmd.pre_exec(move || {
             let lim = libc::rlimit {
@@ -144,12 +146,20 @@ pub fn run(
             if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) != 0 {
                 return Err(std::io::Error::last_os_error());
             }
+            // The server died between the fork and the line above: no
+            // signal will come, so the child must not run at all.
+            if libc::getppid() as u32 != parent {
+                libc::_exit(1);
+            }
             Ok(())
         });
     }
     let mut child = cmd
         .spawn()
         .map_err(|e| EngineError::Failed(format!("cannot start the job process: {e}")))?;
+    // For the next server on this data folder, should this one die: see
+    // `stop_leftovers`.
+    let _ = std::fs::write(dir.join(PID_FILE), child.id().to_string());
     let stdout = child.stdout.take().expect("piped stdout");
     let mut stderr = child.stderr.take().expect("piped stderr");
     let (events, received) = mpsc::channel();
@@ -260,6 +270,60 @@ fn crashed(
         ));
     }
     EngineError::Crashed(format!("the job process ended with {how}: {said}"))
+}
+
+/// The job process's id, in its scratch folder.
+const PID_FILE: &str = "pid";
+
+/// Stops the job processes a dead server left running on `scratch`, before
+/// their jobs run again. The kernel sends them SIGKILL when their server
+/// dies (`PR_SET_PDEATHSIG`), but only once the server's own exit is done,
+/// which takes a while for a server holding gigabytes; meanwhile a new
+/// server may already have started. A process is stopped only if it still
+/// runs `run-job` on that very folder: a pid alone may have been reused.
+pub fn stop_leftovers(scratch: &Path) {
+    let Ok(entries) = std::fs::read_dir(scratch) else {
+        return;
+    };
+    for dir in entries.flatten().map(|e| e.path()) {
+        let Some(pid) = std::fs::read_to_string(dir.join(PID_FILE))
+            .ok()
+            .and_then(|s| s.trim().parse::<i32>().ok())
+            .filter(|&p| p > 1)
+        else {
+            continue;
+        };
+        if !runs_job_in(pid, &dir) {
+            continue;
+        }
+        tracing::warn!(pid, dir = %dir.display(), "stopping a job process left by a dead server");
+        // SAFETY: a plain signal to a process checked just above.
+        unsafe { libc::kill(pid, libc::SIGKILL) };
+        let deadline = std::time::Instant::now() + Duration::from_secs(5);
+        while runs_job_in(pid, &dir) && std::time::Instant::now() < deadline {
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+}
+
+/// Whether process `pid` is alive (not a zombie) and runs `run-job` on
+/// `dir`.
+fn runs_job_in(pid: i32, dir: &Path) -> bool {
+    let proc = PathBuf::from(format!("/proc/{pid}"));
+    let alive = std::fs::read_to_string(proc.join("stat"))
+        .ok()
+        .and_then(|s| {
+            s.rsplit_once(')')
+                .map(|(_, rest)| rest.trim_start().to_string())
+        })
+        .is_some_and(|rest| !rest.starts_with('Z') && !rest.starts_with('X'));
+    let args = std::fs::read(proc.join("cmdline")).unwrap_or_default();
+    let mut args = args.split(|&b| b == 0);
+    let runs = args.any(|a| a == b"run-job")
+        && args
+            .next()
+            .is_some_and(|a| Path::new(std::ffi::OsStr::from_bytes(a)) == dir);
+    alive && runs
 }
 
 struct RemoveOnDrop(PathBuf);

@@ -148,8 +148,17 @@ pub struct Job {
     pub files: Vec<FileEntry>,
     /// The earlier job whose result this one reuses.
     pub cached_from: Option<String>,
-    /// How many times a worker has started it (restarts re-run it).
+    /// Runs charged to the job: started, and not interrupted through no
+    /// fault of its own.
     pub attempts: u32,
+    /// Runs that were interrupted through no fault of the job (its server
+    /// stopped or died, a store or the disk failed) and re-queued uncounted.
+    #[serde(default)]
+    pub interruptions: u32,
+    /// Of those, runs whose worker vanished without a word: its lease ran
+    /// out.
+    #[serde(default)]
+    pub lost_leases: u32,
     pub warnings: Vec<String>,
     /// Where the finished job is posted, and how that went.
     #[serde(default)]
@@ -177,18 +186,22 @@ impl Job {
         self.progress = Progress::at("queued", 0.0);
     }
 
-    /// Back in the queue after a shutdown interrupted it: the attempt was
-    /// not the job's fault, so it is not counted.
+    /// Back in the queue after a shutdown or an outage interrupted it: the
+    /// attempt was not the job's fault, so it is not counted.
     pub fn requeue_uncounted(&mut self) {
         self.requeue();
         self.attempts = self.attempts.saturating_sub(1);
+        self.interruptions += 1;
     }
 
-    /// A running job whose worker is gone: back in the queue, or failed
-    /// once it has been started `max_attempts` times. True if re-queued.
-    pub fn reclaim(&mut self, max_attempts: u32, now_ms: u64) -> bool {
-        if self.attempts < max_attempts {
-            self.requeue();
+    /// A running job whose worker is gone (its process died, or lost the
+    /// store for longer than the lease): back in the queue uncounted, or
+    /// failed once its lease has run out `max_lost` times. True if
+    /// re-queued.
+    pub fn reclaim(&mut self, max_lost: u32, now_ms: u64) -> bool {
+        self.lost_leases += 1;
+        if self.lost_leases < max_lost {
+            self.requeue_uncounted();
             return true;
         }
         self.state = JobState::Failed;
@@ -197,8 +210,8 @@ impl Job {
         self.error = Some(JobError {
             code: "interrupted".into(),
             message: format!(
-                "its worker stopped during each of {} attempts",
-                self.attempts
+                "the server running it stopped without a word {} times",
+                self.lost_leases
             ),
         });
         false
@@ -301,6 +314,7 @@ pub struct View<'a> {
     files: Vec<FileView<'a>>,
     cached: bool,
     attempts: u32,
+    interruptions: u32,
     warnings: &'a [String],
     #[serde(skip_serializing_if = "Option::is_none")]
     callback: Option<&'a Callback>,
@@ -336,6 +350,7 @@ pub fn view(job: &Job, with_report: bool) -> View<'_> {
             .collect(),
         cached: job.cached_from.is_some(),
         attempts: job.attempts,
+        interruptions: job.interruptions,
         warnings: &job.warnings,
         callback: job.callback.as_ref(),
         worker: job.worker.as_deref(),

@@ -85,7 +85,14 @@ impl Metrics {
     }
 
     /// The exposition text; `counts` are the jobs by state in the store.
-    pub fn render(&self, counts: &BTreeMap<JobState, u64>, workers: usize) -> String {
+    /// The exposition text. `counts` is `None` when the job store does not
+    /// answer; `up` says, per dependency, whether it does.
+    pub fn render(
+        &self,
+        counts: Option<&BTreeMap<JobState, u64>>,
+        up: &[(&str, bool)],
+        workers: usize,
+    ) -> String {
         let mut out = String::new();
         let gauge = |out: &mut String, name: &str, help: &str, v: u64| {
             let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} gauge\n{name} {v}");
@@ -96,18 +103,32 @@ impl Metrics {
                 "# HELP {name} {help}\n# TYPE {name} counter\n{name} {v}"
             );
         };
-        gauge(
-            &mut out,
-            "seamstress_queue_depth",
-            "Jobs waiting for a worker.",
-            counts.get(&JobState::Queued).copied().unwrap_or(0),
-        );
+        if let Some(counts) = counts {
+            gauge(
+                &mut out,
+                "seamstress_queue_depth",
+                "Jobs waiting for a worker.",
+                counts.get(&JobState::Queued).copied().unwrap_or(0),
+            );
+            let _ = writeln!(
+                out,
+                "# HELP seamstress_jobs Jobs in the store by state.\n# TYPE seamstress_jobs gauge"
+            );
+            for (state, n) in counts {
+                let _ = writeln!(out, "seamstress_jobs{{state=\"{}\"}} {n}", state.as_str());
+            }
+        }
         let _ = writeln!(
             out,
-            "# HELP seamstress_jobs Jobs in the store by state.\n# TYPE seamstress_jobs gauge"
+            "# HELP seamstress_dependency_up Whether a dependency answered its last probe.\n\
+             # TYPE seamstress_dependency_up gauge"
         );
-        for (state, n) in counts {
-            let _ = writeln!(out, "seamstress_jobs{{state=\"{}\"}} {n}", state.as_str());
+        for (name, is_up) in up {
+            let _ = writeln!(
+                out,
+                "seamstress_dependency_up{{dependency=\"{name}\"}} {}",
+                u8::from(*is_up)
+            );
         }
         gauge(
             &mut out,
@@ -244,7 +265,7 @@ mod tests {
         m.stage("process", 20);
         m.finished(JobState::Succeeded);
         let counts = JobState::ALL.iter().map(|&s| (s, 1)).collect();
-        let text = m.render(&counts, 2);
+        let text = m.render(Some(&counts), &[("job store", true)], 2);
         assert!(text.contains("seamstress_queue_depth 1"));
         assert!(text.contains("seamstress_jobs{state=\"running\"} 1"));
         assert!(text

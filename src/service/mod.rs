@@ -19,6 +19,7 @@ mod download;
 mod engine;
 mod error;
 pub mod files;
+mod health;
 mod isolate;
 pub mod job;
 mod metrics;

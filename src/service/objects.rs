@@ -13,11 +13,11 @@ use std::time::Duration;
 
 use axum::body::Bytes;
 use futures_util::TryStreamExt;
-use object_store::aws::{AmazonS3, AmazonS3Builder};
+use object_store::aws::{AmazonS3, AmazonS3Builder, AmazonS3ConfigKey};
 use object_store::buffered::BufWriter;
 use object_store::path::Path;
 use object_store::signer::Signer;
-use object_store::ObjectStore;
+use object_store::{BackoffConfig, ClientConfigKey, ObjectStore, RetryConfig};
 use tokio::io::AsyncWriteExt;
 use tokio::runtime::Handle;
 
@@ -36,8 +36,35 @@ pub struct ObjectFileStore {
     rt: Handle,
 }
 
+/// How long a connection to the object store may take to open.
+const CONNECT_WITHIN: &str = "2s";
+
+/// How long one request may take, its body included. Bounds a store that
+/// accepts connections but does not answer (frozen, or cut off without a
+/// reset); parts of a multipart upload are 8 MiB, which leaves a slow link
+/// about 300 KB/s.
+const REQUEST_WITHIN: &str = "30s";
+
+/// Retries of a failed request inside one call: a few, quickly. A store
+/// that is away for longer is an outage, which the callers wait out (see
+/// `worker.rs`); the crate's default (ten retries over three minutes) held
+/// every caller, API requests included, for minutes.
+const RETRIES: usize = 3;
+const RETRY_WITHIN: Duration = Duration::from_secs(10);
+
+/// How long `/readyz`'s probe may take: it must say within a second.
+const CHECK_WITHIN: Duration = Duration::from_millis(800);
+
 fn obj_err(e: object_store::Error) -> StoreError {
-    StoreError::Files(e.to_string())
+    match e {
+        // What the HTTP client reports itself: refused, reset, timed out,
+        // or a 5xx after the retries. Everything the server answered in
+        // words (not found, refused, precondition) has a variant of its own.
+        object_store::Error::Generic { .. } | object_store::Error::JoinError { .. } => {
+            StoreError::files_unavailable(e.to_string())
+        }
+        _ => StoreError::Files(e.to_string()),
+    }
 }
 
 impl ObjectFileStore {
@@ -51,8 +78,23 @@ impl ObjectFileStore {
         if bucket.is_empty() {
             return Err(StoreError::Files(format!("{url}: no bucket")));
         }
-        let s3 = AmazonS3Builder::from_env()
-            .with_bucket_name(bucket)
+        let mut builder = AmazonS3Builder::from_env().with_bucket_name(bucket);
+        // The operator's `AWS_*` settings win over these defaults.
+        for (key, value) in [
+            (ClientConfigKey::ConnectTimeout, CONNECT_WITHIN),
+            (ClientConfigKey::Timeout, REQUEST_WITHIN),
+        ] {
+            let key = AmazonS3ConfigKey::Client(key);
+            if builder.get_config_value(&key).is_none() {
+                builder = builder.with_config(key, value);
+            }
+        }
+        let s3 = builder
+            .with_retry(RetryConfig {
+                backoff: BackoffConfig::default(),
+                max_retries: RETRIES,
+                retry_timeout: RETRY_WITHIN,
+            })
             .build()
             .map_err(|e| StoreError::Files(format!("{url}: {e}")))?;
         Ok(ObjectFileStore {
@@ -207,11 +249,15 @@ impl FileStore for ObjectFileStore {
     fn check(&self) -> Result<(), StoreError> {
         let path = self.path("jobs")?;
         self.rt.block_on(async {
-            self.s3
-                .list_with_delimiter(Some(&path))
-                .await
-                .map(drop)
-                .map_err(obj_err)
+            let listed =
+                tokio::time::timeout(CHECK_WITHIN, self.s3.list_with_delimiter(Some(&path)));
+            match listed.await {
+                Ok(r) => r.map(drop).map_err(obj_err),
+                Err(_) => Err(StoreError::files_unavailable(format!(
+                    "no answer within {} ms",
+                    CHECK_WITHIN.as_millis()
+                ))),
+            }
         })
     }
 

@@ -37,6 +37,19 @@ const SUBMIT_LOCK: i64 = 0x5ea3_5715;
 /// PostgreSQL.
 const POOL_SIZE: u32 = 8;
 
+/// How long a connection may take to come from the pool, connecting
+/// included. The pool's own default (30 s) held every caller that long
+/// while the server was away; past this the store counts as unavailable.
+const ACQUIRE_WITHIN: Duration = Duration::from_secs(2);
+
+/// How long one call (a transaction, or a query) may take. A server that
+/// stops answering mid-call (frozen, or cut off without a reset) would
+/// otherwise hold the caller until TCP gives up, many minutes later.
+const CALL_WITHIN: Duration = Duration::from_secs(5);
+
+/// How long `/readyz`'s probe may take: it must say within a second.
+const CHECK_WITHIN: Duration = Duration::from_millis(800);
+
 /// How long a callback a process has taken for delivery stays its own
 /// before another process may deliver it (one try takes at most 10 s).
 const CALLBACK_CLAIM_MS: u64 = 60_000;
@@ -48,12 +61,29 @@ pub struct PgJobStore {
 
 fn db_err(e: sqlx::Error) -> StoreError {
     if let Some(db) = e.as_database_error() {
-        // 53100 disk_full, 53200 out_of_memory is not the client's to retry.
-        if db.code().as_deref() == Some("53100") {
+        let code = db.code();
+        let code = code.as_deref().unwrap_or("");
+        // 53100 disk_full; 53200 out_of_memory is not the client's to retry.
+        if code == "53100" {
             return StoreError::Full(db.to_string());
         }
+        // Connection exceptions (class 08), the server shutting down or
+        // starting up (57P01-57P03), too many connections (53300): the
+        // server is away, not refusing what was asked.
+        if code.starts_with("08") || code.starts_with("57P") || code == "53300" {
+            return StoreError::jobs_unavailable(db.to_string());
+        }
+        return StoreError::Jobs(e.to_string());
     }
-    StoreError::Jobs(e.to_string())
+    match e {
+        sqlx::Error::Io(_)
+        | sqlx::Error::Tls(_)
+        | sqlx::Error::Protocol(_)
+        | sqlx::Error::PoolTimedOut
+        | sqlx::Error::PoolClosed
+        | sqlx::Error::WorkerCrashed => StoreError::jobs_unavailable(e.to_string()),
+        _ => StoreError::Jobs(e.to_string()),
+    }
 }
 
 fn decode_rows(rows: Vec<sqlx::postgres::PgRow>) -> Result<Vec<Job>, StoreError> {
@@ -135,7 +165,7 @@ impl PgJobStore {
         let pool = rt.block_on(async {
             let pool = PgPoolOptions::new()
                 .max_connections(POOL_SIZE)
-                .acquire_timeout(Duration::from_secs(10))
+                .acquire_timeout(ACQUIRE_WITHIN)
                 .connect(url)
                 .await
                 .map_err(|e| StoreError::Jobs(format!("cannot connect to the job store: {e}")))?;
@@ -148,6 +178,24 @@ impl PgJobStore {
         Ok(PgJobStore { pool, rt })
     }
 
+    /// Runs `call` on the store's runtime, for at most `within`.
+    fn run<T>(
+        &self,
+        within: Duration,
+        call: impl std::future::Future<Output = Result<T, StoreError>>,
+    ) -> Result<T, StoreError> {
+        self.rt.block_on(async {
+            tokio::time::timeout(within, call)
+                .await
+                .unwrap_or_else(|_| {
+                    Err(StoreError::jobs_unavailable(format!(
+                        "no answer within {} ms",
+                        within.as_millis()
+                    )))
+                })
+        })
+    }
+
     /// Runs `f` in one transaction, committed if it returns `Ok`.
     fn with<T, F>(&self, f: F) -> Result<T, StoreError>
     where
@@ -157,7 +205,7 @@ impl PgJobStore {
             Box<dyn std::future::Future<Output = Result<T, StoreError>> + Send + 'c>,
         >,
     {
-        self.rt.block_on(async {
+        self.run(CALL_WITHIN, async {
             let mut tx = self.pool.begin().await.map_err(db_err)?;
             let out = f(&mut tx).await?;
             tx.commit().await.map_err(db_err)?;
@@ -231,7 +279,7 @@ impl JobStore for PgJobStore {
     }
 
     fn get(&self, id: &str) -> Result<Option<Job>, StoreError> {
-        self.rt.block_on(async {
+        self.run(CALL_WITHIN, async {
             let rows = sqlx::query("SELECT seq, id, data FROM jobs WHERE id = $1")
                 .bind(id)
                 .fetch_all(&self.pool)
@@ -242,7 +290,7 @@ impl JobStore for PgJobStore {
     }
 
     fn list(&self, owner: &str, before: Option<i64>, limit: usize) -> Result<Vec<Job>, StoreError> {
-        self.rt.block_on(async {
+        self.run(CALL_WITHIN, async {
             let rows = sqlx::query(
                 "SELECT seq, id, data FROM jobs WHERE owner = $1 AND seq < $2
                  ORDER BY seq DESC LIMIT $3",
@@ -258,7 +306,7 @@ impl JobStore for PgJobStore {
     }
 
     fn find_succeeded(&self, owner: &str, input_key: &str) -> Result<Option<Job>, StoreError> {
-        self.rt.block_on(async {
+        self.run(CALL_WITHIN, async {
             let rows = sqlx::query(
                 "SELECT seq, id, data FROM jobs
                  WHERE owner = $1 AND input_key = $2 AND state = 'succeeded'
@@ -307,7 +355,7 @@ impl JobStore for PgJobStore {
     }
 
     fn renew(&self, id: &str, lease: &Lease<'_>) -> Result<bool, StoreError> {
-        self.rt.block_on(async {
+        self.run(CALL_WITHIN, async {
             let done = sqlx::query(
                 "UPDATE jobs SET lease_until = $3
                  WHERE id = $1 AND state = 'running' AND lease_owner = $2",
@@ -326,7 +374,7 @@ impl JobStore for PgJobStore {
     /// needs no transaction; a final state adds its `NOTIFY`.
     fn update_running(&self, job: &Job) -> Result<bool, StoreError> {
         let data = encode(job)?;
-        self.rt.block_on(async {
+        self.run(CALL_WITHIN, async {
             let sql = "UPDATE jobs SET state = $2, finished_ms = $3, attempts = $4, data = $5
                  WHERE id = $1 AND state = 'running' AND lease_owner IS NOT DISTINCT FROM $6";
             let update = sqlx::query(sql)
@@ -389,7 +437,7 @@ impl JobStore for PgJobStore {
     fn reclaim(
         &self,
         expired_before_ms: u64,
-        max_attempts: u32,
+        max_lost: u32,
         now_ms: u64,
     ) -> Result<Reclaimed, StoreError> {
         self.with(move |tx| {
@@ -405,7 +453,7 @@ impl JobStore for PgJobStore {
                 .map_err(db_err)?;
                 let mut out = Reclaimed::default();
                 for mut job in decode_rows(rows)? {
-                    if job.reclaim(max_attempts, now_ms) {
+                    if job.reclaim(max_lost, now_ms) {
                         out.requeued.push(job.clone());
                     } else {
                         out.failed.push(job.clone());
@@ -421,7 +469,7 @@ impl JobStore for PgJobStore {
     }
 
     fn delete(&self, id: &str) -> Result<(), StoreError> {
-        self.rt.block_on(async {
+        self.run(CALL_WITHIN, async {
             // The callback row goes with it (ON DELETE CASCADE).
             sqlx::query("DELETE FROM jobs WHERE id = $1")
                 .bind(id)
@@ -502,7 +550,7 @@ impl JobStore for PgJobStore {
     }
 
     fn expired(&self, before_ms: u64, limit: usize) -> Result<Vec<Job>, StoreError> {
-        self.rt.block_on(async {
+        self.run(CALL_WITHIN, async {
             let rows = sqlx::query(
                 "SELECT seq, id, data FROM jobs
                  WHERE finished_ms IS NOT NULL AND finished_ms < $1
@@ -519,7 +567,7 @@ impl JobStore for PgJobStore {
     }
 
     fn counts(&self) -> Result<BTreeMap<JobState, u64>, StoreError> {
-        self.rt.block_on(async {
+        self.run(CALL_WITHIN, async {
             let rows = sqlx::query("SELECT state, COUNT(*) FROM jobs GROUP BY state")
                 .fetch_all(&self.pool)
                 .await
@@ -538,7 +586,7 @@ impl JobStore for PgJobStore {
     }
 
     fn check(&self) -> Result<(), StoreError> {
-        self.rt.block_on(async {
+        self.run(CHECK_WITHIN, async {
             sqlx::query("SELECT 1")
                 .execute(&self.pool)
                 .await

@@ -11,12 +11,13 @@ use super::app::{App, Shared, SHUTTING_DOWN};
 use super::config::{Config, ConfigError, FilesAt, ServeArgs};
 use super::data_dir::{self, DataDirError, DataLock};
 use super::files::LocalFileStore;
+use super::health::Dependency;
 use super::job::{is_job_id, now_ms};
 use super::objects::ObjectFileStore;
 use super::postgres::PgJobStore;
 use super::sqlite::SqliteJobStore;
 use super::store::{keys, FileStore, JobStore, StoreError, StoreEvent};
-use super::worker::{self, MAX_ATTEMPTS};
+use super::worker::{self, MAX_LOST_LEASES};
 
 #[derive(Debug, thiserror::Error)]
 pub enum ServeError {
@@ -80,7 +81,9 @@ pub fn open_stores(cfg: &Config, rt: &tokio::runtime::Handle) -> Result<Stores, 
     std::fs::create_dir_all(&cfg.data)
         .map_err(|e| StoreError::Files(format!("cannot create {}: {e}", cfg.data.display())))?;
     let lock = data_dir::lock(&cfg.data)?;
-    // Scratch folders of job processes that a crash left behind.
+    // Scratch folders of job processes that a crash left behind, and the
+    // processes themselves if they still run.
+    super::isolate::stop_leftovers(&cfg.data.join("tmp"));
     let _ = std::fs::remove_dir_all(cfg.data.join("tmp"));
     let files_root = cfg.data.join("files");
     let jobs: Arc<dyn JobStore> = match &cfg.store {
@@ -112,7 +115,7 @@ pub fn open_stores(cfg: &Config, rt: &tokio::runtime::Handle) -> Result<Stores, 
 fn recover(jobs: &dyn JobStore, files: &dyn FileStore, exclusive: bool) -> Result<(), StoreError> {
     let now = now_ms();
     let expired_before = if exclusive { u64::MAX } else { now };
-    let reclaimed = jobs.reclaim(expired_before, MAX_ATTEMPTS, now)?;
+    let reclaimed = jobs.reclaim(expired_before, MAX_LOST_LEASES, now)?;
     for job in &reclaimed.requeued {
         tracing::info!(job_id = %job.id, "interrupted job re-queued");
     }
@@ -177,10 +180,21 @@ async fn leases(app: Shared) {
             _ = tokio::time::sleep(app.lease() / 4) => {}
             _ = stopping.changed() => return,
         }
+        // Without the job store no lease can be renewed, so leases that
+        // ran out meanwhile say nothing of their workers: look only once
+        // the store has answered for half a lease, time for every live
+        // worker to renew (every third of a lease).
+        if app
+            .health
+            .up_for(Dependency::Jobs)
+            .is_none_or(|up| up < app.lease() / 2)
+        {
+            continue;
+        }
         let (jobs, files) = (app.jobs.clone(), app.files.clone());
         let reclaimed = tokio::task::spawn_blocking(move || {
             let now = now_ms();
-            let reclaimed = jobs.reclaim(now, MAX_ATTEMPTS, now)?;
+            let reclaimed = jobs.reclaim(now, MAX_LOST_LEASES, now)?;
             for job in &reclaimed.failed {
                 files.delete_prefix(&keys::job(&job.id))?;
             }
@@ -251,6 +265,7 @@ pub(super) async fn run_process(
         tokio::spawn(worker::worker(app.clone(), index, thread));
     }
     tokio::spawn(leases(app.clone()));
+    tokio::spawn(super::health::probe(app.clone()));
     let routes = match role {
         Role::Api => {
             tokio::spawn(reaper(app.clone()));

@@ -48,6 +48,14 @@ const ADDED_COLUMNS: [(&str, &str); 2] = [
 fn db_err(e: rusqlite::Error) -> StoreError {
     match e.sqlite_error_code() {
         Some(rusqlite::ErrorCode::DiskFull) => StoreError::Full(e.to_string()),
+        // Another process holding the file past the busy timeout, or the
+        // disk under it failing a read or write: the file is fine, the
+        // moment is not.
+        Some(
+            rusqlite::ErrorCode::DatabaseBusy
+            | rusqlite::ErrorCode::DatabaseLocked
+            | rusqlite::ErrorCode::SystemIoFailure,
+        ) => StoreError::jobs_unavailable(e.to_string()),
         _ => StoreError::Jobs(e.to_string()),
     }
 }
@@ -314,7 +322,7 @@ impl JobStore for SqliteJobStore {
     fn reclaim(
         &self,
         expired_before_ms: u64,
-        max_attempts: u32,
+        max_lost: u32,
         now_ms: u64,
     ) -> Result<Reclaimed, StoreError> {
         self.with(|tx| {
@@ -326,7 +334,7 @@ impl JobStore for SqliteJobStore {
             )?;
             let mut out = Reclaimed::default();
             for mut job in expired {
-                if job.reclaim(max_attempts, now_ms) {
+                if job.reclaim(max_lost, now_ms) {
                     out.requeued.push(job.clone());
                 } else {
                     out.failed.push(job.clone());

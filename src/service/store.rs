@@ -29,6 +29,13 @@ pub enum StoreError {
     /// The disk (or quota) under a store is full: the client may retry later.
     #[error("storage full: {0}")]
     Full(String),
+    /// The store does not answer (refused, timed out, shutting down): an
+    /// outage, not a verdict on what was asked of it.
+    #[error("{which} unavailable: {message}")]
+    Unavailable {
+        which: &'static str,
+        message: String,
+    },
 }
 
 impl StoreError {
@@ -36,7 +43,29 @@ impl StoreError {
     pub fn job_code(&self) -> &'static str {
         match self {
             StoreError::Full(_) => "storage_full",
+            StoreError::Unavailable { .. } => "store_unavailable",
             _ => "internal",
+        }
+    }
+
+    /// Whether the error is the world's and passes: a store that does not
+    /// answer, or a full disk. Work it interrupts waits and goes on; it
+    /// never fails a job.
+    pub fn is_outage(&self) -> bool {
+        matches!(self, StoreError::Full(_) | StoreError::Unavailable { .. })
+    }
+
+    pub fn jobs_unavailable(message: impl Into<String>) -> Self {
+        StoreError::Unavailable {
+            which: "job store",
+            message: message.into(),
+        }
+    }
+
+    pub fn files_unavailable(message: impl Into<String>) -> Self {
+        StoreError::Unavailable {
+            which: "file store",
+            message: message.into(),
         }
     }
 }
@@ -98,13 +127,13 @@ pub trait JobStore: Send + Sync + 'static {
     fn requeue(&self, id: &str, worker: &str) -> Result<bool, StoreError>;
 
     /// Jobs whose lease ran out before `expired_before_ms` go back to the
-    /// queue, their attempt counted, or fail if they have already been
-    /// started `max_attempts` times (a job that kills its worker must not
-    /// do so forever).
+    /// queue uncounted (their worker's process died or lost the store), or
+    /// fail once their leases have run out `max_lost` times (a job that
+    /// somehow kills the server running it must not do so forever).
     fn reclaim(
         &self,
         expired_before_ms: u64,
-        max_attempts: u32,
+        max_lost: u32,
         now_ms: u64,
     ) -> Result<Reclaimed, StoreError>;
 

@@ -3,7 +3,7 @@
 //! outcome.
 
 use std::panic::AssertUnwindSafe;
-use std::sync::atomic::{AtomicU8, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicU8, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -13,15 +13,19 @@ use tracing::Instrument;
 
 use super::app::{stop_of, Running, Shared, CANCELED, RUN, TIMED_OUT};
 use super::config::hex;
-use super::engine::{EngineError, Stop};
+use super::engine::{EngineError, Produced, Stop};
 use super::isolate::{self, Isolation};
 use super::job::{now_ms, FileEntry, Job, JobError, JobState, Progress};
 use super::store::{keys, Lease, StoreError};
 use crate::budget::Limits;
 
-/// A job that has been started this many times without finishing (each
-/// start interrupted by a crash) fails instead of running again.
-pub const MAX_ATTEMPTS: u32 = 3;
+/// A job whose lease has run out this many times fails instead of running
+/// again. Leases run out when the server running the job dies (or loses its
+/// job store for longer than a lease); a job runs in a process of its own,
+/// so that is not the job's doing, and a few such losses are not charged.
+/// Ten in a row is no longer weather: a job that somehow takes its server
+/// down with it must not do so forever.
+pub const MAX_LOST_LEASES: u32 = 10;
 
 /// How often an idle worker looks at the queue without being woken: other
 /// processes sharing the store may have queued work.
@@ -80,6 +84,15 @@ pub async fn worker(app: Shared, index: usize, thread: JobThread) {
         if app.is_stopping() {
             return;
         }
+        // A job claimed now could neither be read nor stored: leave it
+        // queued, where another process whose stores answer may take it.
+        if app.health.down().is_some() {
+            tokio::select! {
+                _ = app.health.until_up(POLL * 5) => {}
+                _ = stopping.changed() => {}
+            }
+            continue;
+        }
         let (store, worker, lease) = (app.jobs.clone(), name.clone(), app.lease());
         let claimed = tokio::task::spawn_blocking(move || {
             let now = now_ms();
@@ -111,6 +124,7 @@ pub async fn worker(app: Shared, index: usize, thread: JobThread) {
                 }
             }
             Ok(Err(e)) => {
+                app.health.saw(&e);
                 tracing::error!(worker = index, error = %e, "cannot claim a job");
                 tokio::time::sleep(POLL).await;
             }
@@ -147,30 +161,38 @@ async fn run(app: &Shared, job: Job, worker: &str, thread: &JobThread) {
         tracing::info!(attempt = job.attempts, input = %job.input.name, "job started");
 
         let started = Instant::now();
-        let deadline = tokio::time::Instant::now() + app.cfg.job_timeout;
         let snapshot = job.clone();
-        let (task_app, task_flag) = (app.clone(), flag.clone());
-        let mut handle = thread.run(move || execute(&task_app, job, &task_flag));
-        let outcome = tokio::select! {
-            r = &mut handle => r,
-            _ = tokio::time::sleep_until(deadline) => {
-                flag.store(TIMED_OUT, Ordering::Release);
-                time_out(app, snapshot.clone()).await;
-                // The thread stops at its next checkpoint; the slot stays
-                // taken until then so that no more jobs run than workers.
-                handle.await
-            }
-        };
+        let waited = Arc::new(AtomicU64::new(0));
+        let (task_app, task_flag, task_waited) = (app.clone(), flag.clone(), waited.clone());
+        let mut handle = thread.run(move || {
+            let run = Run {
+                app: &task_app,
+                flag: &task_flag,
+                waited: &task_waited,
+            };
+            execute(&run, job)
+        });
+        let outcome = within_limit(app, &mut handle, &flag, &waited, &snapshot).await;
         match outcome {
             Ok(Ok(Ok(state))) => {
                 tracing::info!(state = state.as_str(), "job ended");
+            }
+            Ok(Ok(Err(e))) if e.is_outage() => {
+                // Whatever the store did not take is done again: the job
+                // goes back to the queue, this run not charged. Should the
+                // store still be away, the lease runs out and whoever finds
+                // it puts the job back the same way.
+                tracing::warn!(error = %e, "job interrupted by an outage; back to the queue");
+                let (store, id, worker) = (app.jobs.clone(), id.clone(), worker.to_string());
+                let _ = tokio::task::spawn_blocking(move || store.requeue(&id, &worker)).await;
+                app.work.notify_one();
             }
             Ok(Ok(Err(e))) => {
                 tracing::error!(error = %e, "job store failed during the job");
                 let (task_app, job) = (app.clone(), snapshot);
                 let (code, message) = (e.job_code(), e.to_string());
                 let failed = tokio::task::spawn_blocking(move || {
-                    fail(&task_app, job, code, message, started)
+                    fail_after(&task_app, job, code, &message, started)
                 })
                 .await;
                 if !matches!(failed, Ok(Ok(_))) {
@@ -184,7 +206,7 @@ async fn run(app: &Shared, job: Job, worker: &str, thread: &JobThread) {
                 let (task_app, job) = (app.clone(), snapshot);
                 let message = "the engine failed unexpectedly";
                 let failed = tokio::task::spawn_blocking(move || {
-                    fail(&task_app, job, "internal", message, started)
+                    fail_after(&task_app, job, "internal", message, started)
                 })
                 .await;
                 if !matches!(failed, Ok(Ok(_))) {
@@ -199,6 +221,94 @@ async fn run(app: &Shared, job: Job, worker: &str, thread: &JobThread) {
     }
     .instrument(span)
     .await
+}
+
+/// Waits for the job thread, stopping the job at its time limit. Time the
+/// job spent waiting out an outage does not count against the limit: the
+/// limit is for jobs that outrun themselves, not for stores that are away.
+async fn within_limit<T>(
+    app: &Shared,
+    handle: &mut oneshot::Receiver<T>,
+    flag: &AtomicU8,
+    waited: &AtomicU64,
+    job: &Job,
+) -> Result<T, oneshot::error::RecvError> {
+    let start = tokio::time::Instant::now();
+    loop {
+        let excused = Duration::from_millis(waited.load(Ordering::Acquire));
+        let deadline = start + app.cfg.job_timeout + excused;
+        tokio::select! {
+            r = &mut *handle => return r,
+            _ = tokio::time::sleep_until(deadline) => {
+                if waited.load(Ordering::Acquire) != excused.as_millis() as u64 {
+                    continue;
+                }
+                flag.store(TIMED_OUT, Ordering::Release);
+                time_out(app, job.clone()).await;
+                // The thread stops at its next checkpoint; the slot stays
+                // taken until then so that no more jobs run than workers.
+                return handle.await;
+            }
+        }
+    }
+}
+
+/// What a job's run reads besides the job: the process's shared state, the
+/// job's stop flag, and the milliseconds it has spent waiting out outages.
+struct Run<'a> {
+    app: &'a Shared,
+    flag: &'a AtomicU8,
+    waited: &'a AtomicU64,
+}
+
+/// The first and the longest pause between tries of a store call that met
+/// an outage: soon enough to catch a blip, rare enough not to hammer a
+/// store that is coming back.
+const OUTAGE_FIRST_WAIT: Duration = Duration::from_millis(500);
+const OUTAGE_LONGEST_WAIT: Duration = Duration::from_secs(15);
+
+impl Run<'_> {
+    /// Calls `f` until it answers or fails for a reason of its own. An
+    /// outage (a store that does not answer, a full disk) is waited out,
+    /// with backoff, for as long as the job is not stopped; the lease is
+    /// kept meanwhile by the heartbeat, as long as the job store answers.
+    fn patiently<T>(
+        &self,
+        what: &'static str,
+        mut f: impl FnMut() -> Result<T, StoreError>,
+    ) -> Result<T, StoreError> {
+        let mut wait = OUTAGE_FIRST_WAIT;
+        let mut tries = 0u32;
+        loop {
+            let e = match f() {
+                Ok(v) => return Ok(v),
+                Err(e) if e.is_outage() && stop_of(self.flag).is_none() => e,
+                Err(e) => return Err(e),
+            };
+            tries += 1;
+            self.app.health.saw(&e);
+            tracing::warn!(
+                what,
+                tries,
+                retry_in_ms = wait.as_millis() as u64,
+                error = %e,
+                "waiting out an outage"
+            );
+            self.pause(wait);
+            wait = (wait * 2).min(OUTAGE_LONGEST_WAIT);
+        }
+    }
+
+    /// Sleeps for `d` or until the job is stopped, counting the time as
+    /// waited out.
+    fn pause(&self, d: Duration) {
+        let began = Instant::now();
+        while began.elapsed() < d && stop_of(self.flag).is_none() {
+            std::thread::sleep(Duration::from_millis(50).min(d));
+        }
+        self.waited
+            .fetch_add(began.elapsed().as_millis() as u64, Ordering::AcqRel);
+    }
 }
 
 /// Renews the lease on a running job every third of its length, so that
@@ -257,139 +367,173 @@ async fn time_out(app: &Shared, mut job: Job) {
 
 /// Runs a claimed job to its end on the current thread (the worker's
 /// [`JobThread`]) and returns the state it ended in.
-fn execute(app: &Shared, mut job: Job, flag: &AtomicU8) -> Result<JobState, StoreError> {
-    let started = Instant::now();
-    if let Some(earlier) = app.jobs.find_succeeded(&job.owner, &job.input_key)? {
+fn execute(r: &Run<'_>, mut job: Job) -> Result<JobState, StoreError> {
+    let (app, started) = (r.app, Instant::now());
+    let earlier = r.patiently("find an earlier result", || {
+        app.jobs.find_succeeded(&job.owner, &job.input_key)
+    })?;
+    if let Some(earlier) = earlier {
         // An identical job finished while this one waited.
         if reuse(app, &earlier, &mut job).is_ok() {
-            return finish(app, job, started);
+            return finish(r, job, started);
         }
     }
-    let Some(upload) = app.files.get(&keys::input(&job.id))? else {
+    let upload = r.patiently("read the upload", || app.files.get(&keys::input(&job.id)))?;
+    let Some(upload) = upload else {
         return fail(
-            app,
+            r,
             job,
             "internal",
             "the upload is missing from the file store",
             started,
         );
     };
-    let options = job.options;
+    let outcome = run_engine(r, &mut job, &upload);
+    drop(upload);
+    match outcome {
+        Ok(produced) => {
+            if let Some(stop) = stop_of(r.flag) {
+                return stopped(r, job, stop);
+            }
+            store_results(r, job, produced, started)
+        }
+        Err(EngineError::BadInput(message)) => fail(r, job, "invalid_model", message, started),
+        Err(EngineError::TooLarge(message)) => fail(r, job, "too_large", message, started),
+        Err(EngineError::Crashed(message)) => fail(r, job, "crashed", message, started),
+        Err(EngineError::StorageFull(message)) => fail(r, job, "storage_full", message, started),
+        Err(EngineError::Failed(message)) => fail(r, job, "processing_failed", message, started),
+        Err(EngineError::Stopped(stop)) => stopped(r, job, stop),
+    }
+}
+
+/// A disk that stays full while the job's process is started this many
+/// times, with the outage waits between them (about ten minutes in all),
+/// is no longer a moment: the job needs more room than there is.
+const STORAGE_FULL_RUNS: u32 = 40;
+
+/// Runs the job's process. One that dies is tried once more: a crash may
+/// be the machine's (the OOM killer, a signal), not the input's. One that
+/// finds the disk full waits for room and runs again, uncharged.
+fn run_engine(r: &Run<'_>, job: &mut Job, upload: &[u8]) -> Result<Produced, EngineError> {
+    let app = r.app;
     let limits = Limits {
         max_memory: app.cfg.max_memory,
     };
+    let exe = std::env::current_exe()
+        .map_err(|e| EngineError::Failed(format!("cannot find the binary: {e}")))?;
     let iso = Isolation {
-        exe: match std::env::current_exe() {
-            Ok(exe) => exe,
-            Err(e) => {
-                return fail(
-                    app,
-                    job,
-                    "internal",
-                    format!("cannot find the binary: {e}"),
-                    started,
-                )
-            }
-        },
+        exe,
         address_space: app.cfg.job_address_space,
         scratch: app.cfg.data.join("tmp"),
     };
-    let mut outcome = Err(EngineError::Crashed(String::new()));
-    // A job process that dies is tried once more: a crash may be the
-    // machine's (the OOM killer, a signal), not the input's.
-    for attempt in 0..2 {
-        if attempt > 0 {
-            tracing::warn!(attempt, "job process crashed; trying once more");
-        }
-        let tag = format!("{}-{attempt}", job.id);
+    let options = job.options;
+    let (mut crashes, mut full, mut wait) = (0, 0, OUTAGE_FIRST_WAIT);
+    loop {
+        // A folder of this run's own: a process of an earlier run (of a
+        // server that died) may still be writing its own.
+        let tag = format!("{}-{}-{}", job.id, std::process::id(), crashes + full);
         let mut checkpoint = |at: &Progress| -> Result<(), Stop> {
-            if let Some(stop) = stop_of(flag) {
+            if let Some(stop) = stop_of(r.flag) {
                 return Err(stop);
             }
             job.progress = at.clone();
-            match app.jobs.update_running(&job) {
+            match app.jobs.update_running(job) {
                 Ok(true) => Ok(()),
                 // Canceled, or timed out, through the store.
                 Ok(false) => Err(Stop::Canceled),
+                // Progress is not worth waiting for: the job goes on, and
+                // the next checkpoint or the result says it again.
                 Err(e) => {
+                    app.health.saw(&e);
                     tracing::warn!(error = %e, "cannot record progress");
                     Ok(())
                 }
             }
         };
-        outcome = isolate::run(
+        let outcome = isolate::run(
             &iso,
             &tag,
-            &upload,
+            upload,
             &options,
             app.cfg.max_texture_size,
             &limits,
             &mut checkpoint,
-            &|| stop_of(flag),
+            &|| stop_of(r.flag),
         );
-        if !matches!(outcome, Err(EngineError::Crashed(_))) {
-            break;
+        match &outcome {
+            Err(EngineError::Crashed(_)) if crashes == 0 => {
+                crashes += 1;
+                tracing::warn!("job process crashed; trying once more");
+            }
+            Err(EngineError::StorageFull(message))
+                if full + 1 < STORAGE_FULL_RUNS && stop_of(r.flag).is_none() =>
+            {
+                full += 1;
+                app.health.saw(&StoreError::Full(message.clone()));
+                tracing::warn!(runs = full, retry_in_ms = wait.as_millis() as u64, message = %message, "disk full under the job; waiting for room");
+                r.pause(wait);
+                wait = (wait * 2).min(OUTAGE_LONGEST_WAIT);
+            }
+            _ => return outcome,
         }
     }
-    drop(upload);
-    match outcome {
-        Ok(produced) => {
-            if let Some(stop) = stop_of(flag) {
-                return stopped(app, job, stop);
-            }
-            job.progress = Progress::at("store", 0.95);
-            if !app.jobs.update_running(&job)? {
-                return stopped(app, job, Stop::Canceled);
-            }
-            let t = Instant::now();
-            let blobs: Vec<(String, &[u8])> = produced
-                .files
-                .iter()
-                .map(|(name, bytes)| (keys::output(&job.id, name), bytes.as_slice()))
-                .collect();
-            if let Err(e) = app.files.put_all(&blobs) {
-                // No partial results, even should recording the failure
-                // fail too (`fail` then removes the rest).
-                let _ = app.files.delete_prefix(&keys::outputs(&job.id));
-                let message = format!("cannot store the results: {e}");
-                return fail(app, job, e.job_code(), message, started);
-            }
-            let files = produced
-                .files
-                .iter()
-                .map(|(name, bytes)| FileEntry {
-                    name: name.clone(),
-                    bytes: bytes.len() as u64,
-                    sha256: hex(&Sha256::digest(bytes)),
-                    content_type: content_type(name).to_string(),
-                })
-                .collect();
-            job.timings_ms.load = produced.timings.load;
-            job.timings_ms.process = produced.timings.process;
-            job.timings_ms.rewrite = produced.timings.rewrite;
-            job.timings_ms.store = Some(t.elapsed().as_millis() as u64);
-            job.report = Some(produced.report);
-            job.files = files;
-            job.warnings = produced.warnings;
-            for (stage, ms) in [
-                ("load", job.timings_ms.load),
-                ("process", job.timings_ms.process),
-                ("rewrite", job.timings_ms.rewrite),
-                ("store", job.timings_ms.store),
-            ] {
-                if let Some(ms) = ms {
-                    app.metrics.stage(stage, ms);
-                }
-            }
-            finish(app, job, started)
-        }
-        Err(EngineError::BadInput(message)) => fail(app, job, "invalid_model", message, started),
-        Err(EngineError::TooLarge(message)) => fail(app, job, "too_large", message, started),
-        Err(EngineError::Crashed(message)) => fail(app, job, "crashed", message, started),
-        Err(EngineError::StorageFull(message)) => fail(app, job, "storage_full", message, started),
-        Err(EngineError::Failed(message)) => fail(app, job, "processing_failed", message, started),
-        Err(EngineError::Stopped(stop)) => stopped(app, job, stop),
+}
+
+/// Stores a finished run's files and its record. A store that is away is
+/// waited for: the results are in hand, and running the job again would
+/// cost more than waiting.
+fn store_results(
+    r: &Run<'_>,
+    mut job: Job,
+    produced: Produced,
+    started: Instant,
+) -> Result<JobState, StoreError> {
+    let app = r.app;
+    job.progress = Progress::at("store", 0.95);
+    if !r.patiently("record progress", || app.jobs.update_running(&job))? {
+        return stopped(r, job, Stop::Canceled);
     }
+    let t = Instant::now();
+    let blobs: Vec<(String, &[u8])> = produced
+        .files
+        .iter()
+        .map(|(name, bytes)| (keys::output(&job.id, name), bytes.as_slice()))
+        .collect();
+    let put = r.patiently("store the results", || app.files.put_all(&blobs));
+    if let Err(e) = put {
+        // No partial results, even should recording the failure fail too
+        // (`fail` then removes the rest).
+        let _ = app.files.delete_prefix(&keys::outputs(&job.id));
+        let message = format!("cannot store the results: {e}");
+        return fail(r, job, e.job_code(), message, started);
+    }
+    job.files = produced
+        .files
+        .iter()
+        .map(|(name, bytes)| FileEntry {
+            name: name.clone(),
+            bytes: bytes.len() as u64,
+            sha256: hex(&Sha256::digest(bytes)),
+            content_type: content_type(name).to_string(),
+        })
+        .collect();
+    job.timings_ms.load = produced.timings.load;
+    job.timings_ms.process = produced.timings.process;
+    job.timings_ms.rewrite = produced.timings.rewrite;
+    job.timings_ms.store = Some(t.elapsed().as_millis() as u64);
+    job.report = Some(produced.report);
+    job.warnings = produced.warnings;
+    for (stage, ms) in [
+        ("load", job.timings_ms.load),
+        ("process", job.timings_ms.process),
+        ("rewrite", job.timings_ms.rewrite),
+        ("store", job.timings_ms.store),
+    ] {
+        if let Some(ms) = ms {
+            app.metrics.stage(stage, ms);
+        }
+    }
+    finish(r, job, started)
 }
 
 /// Takes the files of an earlier identical job.
@@ -409,15 +553,18 @@ fn reuse(app: &Shared, earlier: &Job, job: &mut Job) -> Result<(), StoreError> {
     Ok(())
 }
 
-fn finish(app: &Shared, mut job: Job, started: Instant) -> Result<JobState, StoreError> {
+fn finish(r: &Run<'_>, mut job: Job, started: Instant) -> Result<JobState, StoreError> {
+    let app = r.app;
     job.state = JobState::Succeeded;
     job.finished_ms = Some(now_ms());
     job.progress = Progress::at("done", 1.0);
     job.timings_ms.total = Some(started.elapsed().as_millis() as u64);
-    if !app.jobs.update_running(&job)? {
-        return lost(app, &job.id);
+    if !r.patiently("record the result", || app.jobs.update_running(&job))? {
+        return lost(r, &job.id);
     }
-    app.files.remove(&keys::input(&job.id))?;
+    r.patiently("remove the upload", || {
+        app.files.remove(&keys::input(&job.id))
+    })?;
     if let Some(ms) = job.timings_ms.total {
         app.metrics.stage("total", ms);
     }
@@ -426,12 +573,13 @@ fn finish(app: &Shared, mut job: Job, started: Instant) -> Result<JobState, Stor
 }
 
 fn fail(
-    app: &Shared,
+    r: &Run<'_>,
     mut job: Job,
     code: &str,
     message: impl Into<String>,
     started: Instant,
 ) -> Result<JobState, StoreError> {
+    let app = r.app;
     let message = message.into();
     tracing::warn!(code, message = %message, "job failed");
     job.state = JobState::Failed;
@@ -442,42 +590,62 @@ fn fail(
         code: code.into(),
         message,
     });
-    if !app.jobs.update_running(&job)? {
-        return lost(app, &job.id);
+    if !r.patiently("record the failure", || app.jobs.update_running(&job))? {
+        return lost(r, &job.id);
     }
-    app.files.delete_prefix(&keys::job(&job.id))?;
+    r.patiently("remove the job's files", || {
+        app.files.delete_prefix(&keys::job(&job.id))
+    })?;
     app.metrics.finished(JobState::Failed);
     Ok(JobState::Failed)
 }
 
-fn stopped(app: &Shared, job: Job, stop: Stop) -> Result<JobState, StoreError> {
+/// Records the failure of a run whose thread has ended without doing so
+/// (it panicked, or its store failed for good).
+fn fail_after(
+    app: &Shared,
+    job: Job,
+    code: &str,
+    message: &str,
+    started: Instant,
+) -> Result<JobState, StoreError> {
+    let (flag, waited) = (AtomicU8::new(RUN), AtomicU64::new(0));
+    let r = Run {
+        app,
+        flag: &flag,
+        waited: &waited,
+    };
+    fail(&r, job, code, message, started)
+}
+
+fn stopped(r: &Run<'_>, job: Job, stop: Stop) -> Result<JobState, StoreError> {
     match stop {
         Stop::ShuttingDown => {
-            app.jobs
+            r.app
+                .jobs
                 .requeue(&job.id, job.worker.as_deref().unwrap_or_default())?;
             tracing::info!("job re-queued for the next start");
             Ok(JobState::Queued)
         }
-        Stop::Canceled | Stop::TimedOut => lost(app, &job.id),
+        Stop::Canceled | Stop::TimedOut => lost(r, &job.id),
     }
 }
 
 /// The store no longer has the job as running (canceled, timed out,
 /// re-queued or deleted meanwhile): whatever this run wrote goes, unless
 /// the job is waiting to run again.
-fn lost(app: &Shared, id: &str) -> Result<JobState, StoreError> {
-    let current = app.jobs.get(id)?;
-    match current.as_ref().map(|j| j.state) {
-        Some(JobState::Queued) => Ok(JobState::Queued),
-        Some(state) => {
-            app.files.delete_prefix(&keys::job(id))?;
-            Ok(state)
-        }
-        None => {
-            app.files.delete_prefix(&keys::job(id))?;
-            Ok(JobState::Canceled)
-        }
-    }
+fn lost(r: &Run<'_>, id: &str) -> Result<JobState, StoreError> {
+    let app = r.app;
+    let current = r.patiently("read the job", || app.jobs.get(id))?;
+    let state = match current.as_ref().map(|j| j.state) {
+        Some(JobState::Queued) => return Ok(JobState::Queued),
+        Some(state) => state,
+        None => JobState::Canceled,
+    };
+    r.patiently("remove the job's files", || {
+        app.files.delete_prefix(&keys::job(id))
+    })?;
+    Ok(state)
 }
 
 pub fn content_type(name: &str) -> &'static str {
