@@ -951,15 +951,29 @@ fn every_route_is_in_openapi_and_the_reverse() {
     assert_eq!(seamstress::service::OPENAPI, spec);
 }
 
-/// `seamstress serve` run to its end (it is expected to refuse to start).
+/// `seamstress serve` run to its end: it is expected to refuse to start,
+/// and one still running after 30 s has not (it is stopped, and the test
+/// fails rather than waits for it).
 fn serve_refused(data: &Path, extra: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_seamstress"))
+    let mut child = Command::new(env!("CARGO_BIN_EXE_seamstress"))
         .args(["serve", "--listen", "127.0.0.1:0", "--data"])
         .arg(data)
         .args(extra)
         .env_remove("SEAMSTRESS_TOKENS")
-        .output()
-        .unwrap()
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while child.try_wait().unwrap().is_none() {
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            let o = child.wait_with_output().unwrap();
+            panic!("the server started: {}", String::from_utf8_lossy(&o.stdout));
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    child.wait_with_output().unwrap()
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -1057,6 +1071,99 @@ async fn a_damaged_job_store_is_never_taken_for_an_empty_one() {
     let s = Server::start(&data, &["--rebuild-store"]);
     let (status, _) = json_of(get(&c, &s, &format!("/v1/jobs/{id}")).await).await;
     assert_eq!(status, StatusCode::NOT_FOUND);
+}
+
+/// Every file under `dir` and its bytes.
+fn files_under(dir: &Path) -> BTreeMap<PathBuf, Vec<u8>> {
+    let mut out = BTreeMap::new();
+    let mut todo = vec![dir.to_path_buf()];
+    while let Some(d) = todo.pop() {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                todo.push(p);
+            } else {
+                out.insert(p.clone(), std::fs::read(&p).unwrap());
+            }
+        }
+    }
+    out
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_store_with_a_damaged_page_or_cut_short_is_refused_and_nothing_deleted() {
+    if common::server::on_cluster() {
+        eprintln!("skipped: the embedded job store's own damage; PostgreSQL keeps its own");
+        return;
+    }
+    let data = scratch("corrupt");
+    let mut s = Server::start(&data, &[]);
+    let c = client();
+    let cube = std::fs::read(assets().join("cube/cube_gradient_128.glb")).unwrap();
+    for query in ["", "&mode=global"] {
+        let job = accepted(submit_raw(&c, &s, cube.clone(), "cube.glb", query).await).await;
+        let job = finish(&c, &s, job["id"].as_str().unwrap()).await;
+        assert_eq!(job["state"], "succeeded", "{job}");
+    }
+    s.kill();
+    // Everything the killed server committed into the store's main file,
+    // so that the garbage below is what SQLite reads. The page is the root
+    // of an index that starting does not read: a server that does not
+    // check would start on it and say it is ready.
+    let store = data.join("jobs.sqlite3");
+    let root: u64 = {
+        let conn = rusqlite::Connection::open(&store).unwrap();
+        conn.execute_batch("PRAGMA wal_checkpoint(TRUNCATE)")
+            .unwrap();
+        conn.query_row(
+            "SELECT rootpage FROM sqlite_schema WHERE name = 'jobs_finished'",
+            [],
+            |r| r.get(0),
+        )
+        .unwrap()
+    };
+    for side in ["jobs.sqlite3-wal", "jobs.sqlite3-shm"] {
+        let _ = std::fs::remove_file(data.join(side));
+    }
+    let results = files_under(&data.join("files"));
+    assert!(
+        results
+            .keys()
+            .filter(|p| p.ends_with("report.json"))
+            .count()
+            >= 2,
+        "{:?}",
+        results.keys()
+    );
+    let good = std::fs::read(&store).unwrap();
+    let page = 4096;
+    let mut damaged = good.clone();
+    for (i, b) in damaged[(root as usize - 1) * page..][..page]
+        .iter_mut()
+        .enumerate()
+    {
+        *b = (i * 151 + 7) as u8;
+    }
+    let cut = good[..good.len() / 2].to_vec();
+    for (what, bytes) in [("garbage in a page", damaged), ("cut short", cut)] {
+        std::fs::write(&store, &bytes).unwrap();
+        let o = serve_refused(&data, &[]);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{what}: {err}");
+        assert!(err.contains(&store.display().to_string()), "{what}: {err}");
+        assert!(err.contains("damaged"), "{what}: {err}");
+        assert!(err.contains("--rebuild-store"), "{what}: {err}");
+        assert_eq!(err.trim().lines().count(), 1, "{what}: {err}");
+        assert_eq!(
+            std::fs::read(&store).unwrap(),
+            bytes,
+            "{what}: the store changed"
+        );
+        assert!(
+            files_under(&data.join("files")) == results,
+            "{what}: result files changed"
+        );
+    }
 }
 
 /// A tmpfs of `mb` MiB mounted at `dir` for the life of the value, where

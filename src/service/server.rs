@@ -90,9 +90,11 @@ pub fn open_stores(cfg: &Config, rt: &tokio::runtime::Handle) -> Result<Stores, 
         Some(url) => Arc::new(PgJobStore::open(url, rt.clone())?),
         None => {
             let store = data_dir::store_path(&cfg.data);
-            if cfg.files.is_none() {
-                data_dir::check_store(&store, &files_root.join("jobs"), cfg.rebuild_store)?;
-            }
+            // Job folders tell a lost store from a new one only when they
+            // are kept here.
+            let jobs_dir = files_root.join("jobs");
+            let beside = cfg.files.is_none().then_some(jobs_dir.as_path());
+            data_dir::check_store(&store, beside, cfg.rebuild_store)?;
             Arc::new(SqliteJobStore::open(&store)?)
         }
     };
