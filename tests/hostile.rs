@@ -157,6 +157,53 @@ fn box_edited(dir: &Path, edit: impl FnOnce(&mut Value)) -> PathBuf {
 }
 
 #[test]
+fn texcoords_reading_the_normals_skip_their_texture_with_a_warning() {
+    let dir = scratch("uv-normals");
+    // TEXCOORD_0 reads the first two components of every normal: UVs the
+    // loader accepts, on which the seam system is singular.
+    let model = box_edited(&dir, |g| {
+        let attributes = g["meshes"][0]["primitives"][0]["attributes"].clone();
+        let normals = attributes["NORMAL"].as_u64().unwrap() as usize;
+        let uv = attributes["TEXCOORD_0"].as_u64().unwrap() as usize;
+        let from = g["accessors"][normals].clone();
+        let to = g["accessors"][uv].as_object_mut().unwrap();
+        to.insert("bufferView".into(), from["bufferView"].clone());
+        to.insert("byteOffset".into(), from["byteOffset"].clone());
+        to.remove("min");
+        to.remove("max");
+    });
+    let out = dir.join("out");
+    let o = seamstress(&[
+        "process",
+        model.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(0), "{err}");
+    assert!(err.contains("CesiumLogoFlat"), "{err}");
+    let report: Value =
+        serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
+    assert_eq!(report["textures"].as_array().unwrap().len(), 0, "{report}");
+    let warnings = report["warnings"].as_array().unwrap();
+    assert!(
+        warnings.iter().any(|w| {
+            let w = w.as_str().unwrap();
+            w.starts_with("texture CesiumLogoFlat: skipped") && w.contains("solver")
+        }),
+        "{report}"
+    );
+    let skipped = report["skipped"].as_array().unwrap();
+    assert!(
+        skipped
+            .iter()
+            .any(|s| s["image"] == 0 && s["reason"].as_str().unwrap().contains("solver")),
+        "{report}"
+    );
+    assert!(!out.join("CesiumLogoFlat.dds").exists());
+}
+
+#[test]
 fn a_texture_transform_tiling_ten_thousand_times_is_refused_at_once() {
     let dir = scratch("transform");
     let model = box_edited(&dir, |g| {

@@ -209,14 +209,27 @@ pub fn run_reporting(
     let mut files = Vec::new();
     let mut textures = Vec::new();
     let mut warnings = Vec::new();
+    let mut skipped = model.skipped.clone();
     let total = model.bindings.len();
-    let mut finish = |done: Option<Result<(TextureReport, Vec<OutputFile>), PipelineError>>| {
-        if let Some(done) = done {
-            let (report, mut out) = done?;
-            files.append(&mut out);
-            warnings.extend(harm_warning(&report, opts));
-            warnings.extend(alpha_warning(&report));
-            textures.push(report);
+    // A texture's outcome, under the number of its image.
+    type Done = (
+        usize,
+        Result<(TextureReport, Vec<OutputFile>), PipelineError>,
+    );
+    let mut finish = |done: Option<Done>| {
+        match done {
+            None => {}
+            Some((_, Ok((report, mut out)))) => {
+                files.append(&mut out);
+                warnings.extend(harm_warning(&report, opts));
+                warnings.extend(alpha_warning(&report));
+                textures.push(report);
+            }
+            Some((image, Err(e))) => {
+                let (skip, warning) = unsolvable(image, e)?;
+                skipped.push(skip);
+                warnings.push(warning);
+            }
         }
         Ok::<_, PipelineError>(())
     };
@@ -233,20 +246,60 @@ pub fn run_reporting(
         .map_err(PipelineError::Stopped)?;
         let (erased, done) = rayon::join(
             || erase_texture(binding, opts),
-            || last.take().map(|e| finish_texture(e, load_ms, opts)),
+            || {
+                last.take()
+                    .map(|e| (e.image(), finish_texture(e, load_ms, opts)))
+            },
         );
         finish(done)?;
-        last = Some(erased?);
+        last = match erased {
+            Ok(e) => Some(e),
+            Err(e) => {
+                finish(Some((binding.image, Err(e))))?;
+                None
+            }
+        };
     }
-    finish(last.map(|e| finish_texture(e, load_ms, opts)))?;
+    finish(last.map(|e| (e.image(), finish_texture(e, load_ms, opts))))?;
     let report = Report {
         input: input_name.to_string(),
         options: *opts,
         textures,
-        skipped: model.skipped.clone(),
+        skipped,
         warnings,
     };
     Ok(Output { files, report })
+}
+
+/// A texture whose seam system the solver cannot take through (one the
+/// loader accepted, but whose UVs make a degenerate system, such as
+/// TEXCOORD_0 reading the normals): skipped with a warning, as a texture
+/// the loader does not take is, so that its image is left as it was and
+/// the job's other textures are still made. Any other error is the job's.
+fn unsolvable(image: usize, e: PipelineError) -> Result<(Skipped, String), PipelineError> {
+    let (name, why) = match &e {
+        PipelineError::Erase { name, source } => (name, source.to_string()),
+        PipelineError::Solve { name, source } => (name, source.to_string()),
+        _ => return Err(e),
+    };
+    tracing::warn!(
+        texture = %name,
+        image,
+        error = %why,
+        "texture skipped: the solver cannot proceed"
+    );
+    Ok((
+        Skipped {
+            image: Some(image),
+            mesh: None,
+            primitive: None,
+            reason: format!("the seam solver cannot proceed: {why}"),
+        },
+        format!(
+            "texture {name}: skipped, the seam solver cannot proceed ({why}); \
+             its image is left as it was"
+        ),
+    ))
 }
 
 /// The warning an unattended run must not miss: charts repainted below

@@ -92,6 +92,11 @@ impl Erased<'_> {
     fn binding(&self) -> &TextureBinding {
         self.fitted.as_ref().map_or(self.original, |f| &f.0)
     }
+
+    /// The model's image this texture is.
+    pub(super) fn image(&self) -> usize {
+        self.original.image
+    }
 }
 
 /// The first stage of a texture: brought to size, its level 0's seams
