@@ -413,14 +413,35 @@ pub fn parse_bytes(s: &str) -> Result<u64, String> {
     Ok(bytes as u64)
 }
 
-/// The memory this process may really use: the machine's, or less under an
-/// address-space limit (`ulimit -v`) or a container's cgroup limit.
+/// The memory this process may really use, read when it is called: what
+/// the kernel counts as available (`MemAvailable`: free memory and what it
+/// can reclaim without swapping, so less what every other process holds),
+/// or less within a container's or a service's cgroup limit, or under an
+/// address-space limit (`ulimit -v`).
 pub fn usable_memory() -> u64 {
-    let mut limit = machine_memory().unwrap_or(u64::MAX);
-    if let Some(cg) = cgroup_limit() {
-        limit = limit.min(cg);
+    let meminfo = std::fs::read_to_string("/proc/meminfo").ok();
+    let cgroups = std::fs::read_to_string("/proc/self/cgroup")
+        .map(|text| cgroup_rooms(&text))
+        .unwrap_or_default();
+    usable(meminfo.as_deref(), &cgroups, address_space_limit())
+}
+
+/// The default budget of each of `jobs` jobs run at once: the usable
+/// memory shared out, since every one of them may be at its peak together.
+/// `process --jobs` and `serve --workers` both take it.
+pub fn memory_per_job(jobs: usize) -> u64 {
+    usable_memory() / jobs.max(1) as u64
+}
+
+/// [`usable_memory`] from what it reads: `/proc/meminfo`'s text, the room
+/// left under each cgroup limit above this process, and the address-space
+/// limit. Nothing known is no limit.
+fn usable(meminfo: Option<&str>, cgroups: &[u64], address_space: Option<u64>) -> u64 {
+    let mut limit = meminfo.and_then(available_memory).unwrap_or(u64::MAX);
+    for &room in cgroups {
+        limit = limit.min(room);
     }
-    if let Some(rl) = address_space_limit() {
+    if let Some(rl) = address_space {
         // Address space is not resident memory: code, thread stacks and
         // allocator reservations take some that is never touched.
         limit = limit.min(rl / 4 * 3);
@@ -428,34 +449,105 @@ pub fn usable_memory() -> u64 {
     limit
 }
 
-fn machine_memory() -> Option<u64> {
-    let info = std::fs::read_to_string("/proc/meminfo").ok()?;
-    let kb = info
-        .lines()
-        .find_map(|l| l.strip_prefix("MemTotal:"))?
-        .trim()
-        .trim_end_matches("kB")
-        .trim()
-        .parse::<u64>()
-        .ok()?;
-    Some(kb * 1024)
+/// `MemAvailable` from `/proc/meminfo`'s text; `MemTotal` on kernels
+/// before 3.14, which do not estimate it.
+fn available_memory(meminfo: &str) -> Option<u64> {
+    let field = |name: &str| {
+        meminfo.lines().find_map(|l| {
+            let kb = l.strip_prefix(name)?.strip_prefix(':')?;
+            kb.trim().strip_suffix("kB")?.trim().parse::<u64>().ok()
+        })
+    };
+    field("MemAvailable")
+        .or_else(|| field("MemTotal"))
+        .map(|kb| kb.saturating_mul(1024))
 }
 
-fn cgroup_limit() -> Option<u64> {
-    // cgroup v2, then v1; "max" or absurd values mean no limit.
-    for path in [
-        "/sys/fs/cgroup/memory.max",
-        "/sys/fs/cgroup/memory/memory.limit_in_bytes",
-    ] {
-        if let Ok(text) = std::fs::read_to_string(path) {
-            if let Ok(v) = text.trim().parse::<u64>() {
-                if v < (1 << 60) {
-                    return Some(v);
-                }
+/// One cgroup's memory files, version 2's names or version 1's.
+const CGROUP_FILES: [(&str, [&str; 3]); 2] = [
+    // The hierarchy's mount, its limit, its usage, and its statistics.
+    (
+        "/sys/fs/cgroup",
+        ["memory.max", "memory.current", "memory.stat"],
+    ),
+    (
+        "/sys/fs/cgroup/memory",
+        [
+            "memory.limit_in_bytes",
+            "memory.usage_in_bytes",
+            "memory.stat",
+        ],
+    ),
+];
+
+/// The room under every memory limit of the cgroups holding this process
+/// (its own and each one above it, whose limits hold it too), in both
+/// hierarchies; `proc_self_cgroup` is `/proc/self/cgroup`'s text.
+fn cgroup_rooms(proc_self_cgroup: &str) -> Vec<u64> {
+    let (v2, v1) = cgroup_paths(proc_self_cgroup);
+    let mut rooms = Vec::new();
+    for (path, (mount, [max, current, stat])) in [v2, v1].into_iter().zip(CGROUP_FILES) {
+        let Some(path) = path else { continue };
+        let mut dir = std::path::PathBuf::from(mount);
+        // Outside its cgroup namespace's root a process sees `..` in its
+        // path, and in a container's namespace a path the container's mount
+        // does not show: the mount is the nearest cgroup known then.
+        if !path.split('/').any(|c| c == "..") {
+            dir.extend(path.split('/').filter(|c| !c.is_empty()));
+        }
+        let dirs = dir
+            .ancestors()
+            .take_while(|d| d.starts_with(mount))
+            .filter(|d| d.is_dir());
+        for d in dirs {
+            let read = |name: &str| std::fs::read_to_string(d.join(name)).ok();
+            if let (Some(max), Some(current)) = (read(max), read(current)) {
+                rooms.extend(cgroup_room(&max, &current, read(stat).as_deref()));
             }
         }
     }
-    None
+    rooms
+}
+
+/// From `/proc/self/cgroup`'s text, the process's cgroup in the version 2
+/// hierarchy (`0::PATH`) and in version 1's memory hierarchy
+/// (`N:...memory...:PATH`).
+fn cgroup_paths(text: &str) -> (Option<&str>, Option<&str>) {
+    let (mut v2, mut v1) = (None, None);
+    for line in text.lines() {
+        let mut parts = line.splitn(3, ':');
+        let (Some(id), Some(controllers), Some(path)) = (parts.next(), parts.next(), parts.next())
+        else {
+            continue;
+        };
+        if id == "0" && controllers.is_empty() {
+            v2 = Some(path);
+        } else if controllers.split(',').any(|c| c == "memory") {
+            v1 = Some(path);
+        }
+    }
+    (v2, v1)
+}
+
+/// The room left under one cgroup's limit: the limit less what its
+/// processes use, counting the page cache it could drop (`inactive_file`)
+/// as room, as the kernel does before it reclaims anything else. `None`
+/// without a limit (`max`, or version 1's near-2⁶³ "unlimited").
+fn cgroup_room(max: &str, current: &str, stat: Option<&str>) -> Option<u64> {
+    let limit = max.trim().parse::<u64>().ok().filter(|&v| v < 1 << 60)?;
+    let used = current.trim().parse::<u64>().ok()?;
+    let stat_field = |name: &str| {
+        stat?.lines().find_map(|l| {
+            let (key, value) = l.split_once(' ')?;
+            (key == name).then(|| value.trim().parse::<u64>().ok())?
+        })
+    };
+    // Version 1 counts the hierarchy's page cache in `total_inactive_file`
+    // (its usage is the hierarchy's too), version 2 in `inactive_file`.
+    let reclaimable = stat_field("total_inactive_file")
+        .or_else(|| stat_field("inactive_file"))
+        .unwrap_or(0);
+    Some(limit.saturating_sub(used.saturating_sub(reclaimable)))
 }
 
 fn address_space_limit() -> Option<u64> {
@@ -536,5 +628,72 @@ mod tests {
     #[test]
     fn usable_memory_is_positive() {
         assert!(usable_memory() > 0);
+        assert!(memory_per_job(0) > 0);
+    }
+
+    const MEMINFO: &str = "MemTotal:       24683772 kB\n\
+                           MemFree:        20000000 kB\n\
+                           MemAvailable:    4194304 kB\n\
+                           Buffers:          123456 kB\n";
+
+    #[test]
+    fn the_memory_available_is_what_others_leave_not_the_total() {
+        assert_eq!(available_memory(MEMINFO), Some(4 << 30));
+        // Kernels before 3.14 give only the total.
+        assert_eq!(
+            available_memory("MemTotal: 2097152 kB\nMemFree: 1 kB\n"),
+            Some(2 << 30)
+        );
+        assert_eq!(available_memory("MemAvailableX: 5 kB\n"), None);
+        assert_eq!(available_memory(""), None);
+        assert_eq!(usable(Some(MEMINFO), &[], None), 4 << 30);
+        assert_eq!(usable(None, &[], None), u64::MAX);
+    }
+
+    #[test]
+    fn the_tightest_of_meminfo_cgroups_and_address_space_wins() {
+        assert_eq!(usable(Some(MEMINFO), &[3 << 30, 5 << 30], None), 3 << 30);
+        assert_eq!(usable(Some(MEMINFO), &[3 << 30], Some(2 << 30)), 3 << 29);
+        assert_eq!(usable(None, &[], Some(8 << 30)), 6 << 30);
+    }
+
+    #[test]
+    fn a_cgroup_leaves_its_limit_less_what_it_cannot_reclaim() {
+        let stat = "anon 1073741824\nfile 2147483648\ninactive_file 536870912\n";
+        // 4 GiB limit, 3 GiB charged of which 0.5 GiB droppable page cache.
+        assert_eq!(
+            cgroup_room("4294967296\n", "3221225472\n", Some(stat)),
+            Some(3 << 29)
+        );
+        assert_eq!(
+            cgroup_room("4294967296\n", "3221225472\n", None),
+            Some(1 << 30)
+        );
+        // Over its limit (the kernel is reclaiming): no room.
+        assert_eq!(cgroup_room("1000\n", "5000\n", None), Some(0));
+        // Version 1 names the hierarchy's cache total_inactive_file.
+        let v1 = "inactive_file 1\ntotal_inactive_file 1000\n";
+        assert_eq!(cgroup_room("10000", "3000", Some(v1)), Some(8000));
+        // No limit.
+        assert_eq!(cgroup_room("max\n", "3221225472\n", Some(stat)), None);
+        assert_eq!(
+            cgroup_room("9223372036854771712\n", "5967872\n", None),
+            None
+        );
+        assert_eq!(cgroup_room("", "1", None), None);
+    }
+
+    #[test]
+    fn the_cgroups_of_this_process_are_read_from_proc() {
+        let v1 = "9:name=systemd:/\n4:memory:/process_api/de3a\n0::/\n";
+        assert_eq!(cgroup_paths(v1), (Some("/"), Some("/process_api/de3a")));
+        let joined = "5:cpu,memory:/docker/abc\n";
+        assert_eq!(cgroup_paths(joined), (None, Some("/docker/abc")));
+        let v2 = "0::/system.slice/seamstress.service\n";
+        assert_eq!(
+            cgroup_paths(v2),
+            (Some("/system.slice/seamstress.service"), None)
+        );
+        assert_eq!(cgroup_paths("garbage"), (None, None));
     }
 }

@@ -103,9 +103,9 @@ struct ProcessArgs {
     #[arg(long, default_value_t = 16384)]
     max_texture_size: u32,
     /// Refuse (exit 2) a model whose estimated peak memory is above this
-    /// (512M, 4G, ...), before decoding it. Default: the memory this
-    /// process may use (the machine's, or less under `ulimit -v` or a
-    /// container's limit).
+    /// (512M, 4G, ...), before decoding it. Default: the memory available
+    /// (MemAvailable, or less under a cgroup limit or `ulimit -v`) divided
+    /// among the models run at once (--jobs).
     #[arg(long, value_name = "BYTES", value_parser = budget::parse_bytes)]
     max_memory: Option<u64>,
 }
@@ -321,7 +321,11 @@ fn process(args: &ProcessArgs) -> Result<(), Failure> {
             ..LoadOptions::default()
         },
         limits: Limits {
-            max_memory: args.max_memory.unwrap_or_else(budget::usable_memory),
+            // As `serve` shares it among its workers: every model of a
+            // batch may be at its peak at once.
+            max_memory: args.max_memory.unwrap_or_else(|| {
+                budget::memory_per_job(usize::from(args.batch.jobs).min(models.len()))
+            }),
         },
     };
     match &models[..] {

@@ -59,8 +59,8 @@ pub struct ServeArgs {
     #[arg(long, env = "SEAMSTRESS_MAX_TEXTURE_SIZE")]
     pub max_texture_size: Option<u32>,
     /// Peak memory one job may use, e.g. 2GiB; uploads estimated above it
-    /// are refused with 422 too_large [default: the memory the server may
-    /// use (the machine's, or less under `ulimit -v` or a cgroup limit)
+    /// are refused with 422 too_large [default: the memory available at
+    /// start (MemAvailable, or less under a cgroup limit or `ulimit -v`)
     /// divided among the workers].
     #[arg(long, env = "SEAMSTRESS_MAX_MEMORY")]
     pub max_memory: Option<String>,
@@ -252,8 +252,8 @@ impl Default for Config {
             grace: Duration::from_secs(30),
             max_body: 512 << 20,
             max_texture_size: 16384,
-            max_memory: crate::budget::usable_memory() / workers as u64,
-            job_address_space: address_space_for(crate::budget::usable_memory() / workers as u64),
+            max_memory: crate::budget::memory_per_job(workers),
+            job_address_space: address_space_for(crate::budget::memory_per_job(workers)),
             min_free: 256 << 20,
             max_wait: Duration::from_secs(600),
             tokens: Vec::new(),
@@ -326,8 +326,7 @@ impl Config {
             lease: duration("lease", &args.lease, &file.lease)?.unwrap_or(d.lease),
             workers,
             // Every worker may run a job at its peak at once.
-            max_memory: max_memory
-                .unwrap_or_else(|| crate::budget::usable_memory() / workers.max(1) as u64),
+            max_memory: max_memory.unwrap_or_else(|| crate::budget::memory_per_job(workers)),
             job_address_space: 0,
             queue_size: args.queue_size.or(file.queue_size).unwrap_or(d.queue_size),
             job_timeout: duration("job_timeout", &args.job_timeout, &file.job_timeout)?

@@ -50,8 +50,8 @@ pub struct WorkerArgs {
     /// Largest texture width or height [default: 16384].
     #[arg(long, env = "SEAMSTRESS_MAX_TEXTURE_SIZE")]
     pub max_texture_size: Option<u32>,
-    /// Peak memory one job may use, e.g. 2GiB [default: the memory this
-    /// process may use divided among its workers].
+    /// Peak memory one job may use, e.g. 2GiB [default: the memory
+    /// available at start divided among its workers].
     #[arg(long, env = "SEAMSTRESS_MAX_MEMORY")]
     pub max_memory: Option<String>,
     /// Address space each job's process may map [default: twice
