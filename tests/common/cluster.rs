@@ -229,6 +229,16 @@ impl Postgres {
     pub fn log(&self) -> String {
         tail(&self.dir.join("postgres.log"))
     }
+
+    /// Freezes the server (SIGSTOP): connections open, nothing answers,
+    /// as with a host that has gone away. [`Postgres::resume`] undoes it.
+    pub fn pause(&self) {
+        self.server.signal(libc::SIGSTOP);
+    }
+
+    pub fn resume(&self) {
+        self.server.signal(libc::SIGCONT);
+    }
 }
 
 impl Drop for Postgres {
@@ -492,6 +502,16 @@ impl Seaweed {
     pub fn log(&self) -> String {
         tail(&self.dir.join("weed.log"))
     }
+
+    /// Freezes every SeaweedFS server (SIGSTOP): connections open, nothing
+    /// answers. [`Seaweed::resume`] undoes it.
+    pub fn pause(&self) {
+        self.server.signal(libc::SIGSTOP);
+    }
+
+    pub fn resume(&self) {
+        self.server.signal(libc::SIGCONT);
+    }
 }
 
 impl Drop for Seaweed {
@@ -726,6 +746,17 @@ impl Guarded {
         }
     }
 
+    /// Sends `signal` to the guard and every process under it. Not to the
+    /// process group: PostgreSQL's backends each lead a group of their own.
+    fn signal(&self, signal: libc::c_int) {
+        if let Some(child) = &self.child {
+            for pid in descendants(child.id()) {
+                // SAFETY: a plain signal to a process of this test's own.
+                unsafe { libc::kill(pid as libc::pid_t, signal) };
+            }
+        }
+    }
+
     fn exited(&mut self) -> bool {
         self.child
             .as_mut()
@@ -758,6 +789,35 @@ impl Drop for Guarded {
     fn drop(&mut self) {
         self.stop();
     }
+}
+
+/// `root` and every process descended from it, parents first.
+fn descendants(root: u32) -> Vec<u32> {
+    let parents: Vec<(u32, u32)> = fs::read_dir("/proc")
+        .into_iter()
+        .flatten()
+        .flatten()
+        .filter_map(|e| {
+            let pid: u32 = e.file_name().to_str()?.parse().ok()?;
+            let stat = fs::read_to_string(e.path().join("stat")).ok()?;
+            let ppid = stat
+                .rsplit_once(')')?
+                .1
+                .split_whitespace()
+                .nth(1)?
+                .parse()
+                .ok()?;
+            Some((pid, ppid))
+        })
+        .collect();
+    let mut out = vec![root];
+    let mut k = 0;
+    while k < out.len() {
+        let parent = out[k];
+        out.extend(parents.iter().filter(|p| p.1 == parent).map(|p| p.0));
+        k += 1;
+    }
+    out
 }
 
 /// `n` free ports of 127.0.0.1, distinct; with `plus_10000`, each also has
