@@ -344,10 +344,10 @@ fn two_api_servers_and_three_workers_lose_nothing() {
         assert_eq!(j["state"], "succeeded", "{j}");
         if let Some((worker, victim)) = &killed {
             if victim == id {
-                // Run again elsewhere, the killed attempt counted, unless
+                // Run again elsewhere, the killed run not charged, unless
                 // it had just finished when the worker died.
                 assert!(
-                    j["worker"].as_str() != Some(worker.as_str()) || j["attempts"] == 1,
+                    j["worker"].as_str() != Some(worker.as_str()) || j["interruptions"] == 0,
                     "{j}"
                 );
             }
@@ -356,12 +356,9 @@ fn two_api_servers_and_three_workers_lose_nothing() {
             .entry(j["attempts"].as_u64().unwrap())
             .or_insert(0usize) += 1;
     }
-    let retried: usize = attempts
-        .iter()
-        .filter(|(&a, _)| a > 1)
-        .map(|(_, n)| n)
-        .sum();
-    assert!(retried <= 1, "attempts {attempts:?}");
+    // A worker killed by the operator is no fault of its job's (jobs the
+    // cache answered at submission never ran: 0).
+    assert!(attempts.keys().all(|&a| a <= 1), "attempts {attempts:?}");
     let expired: u64 = apis
         .iter()
         .chain(workers.iter().filter(|w| w.alive))
