@@ -157,7 +157,7 @@ fn box_edited(dir: &Path, edit: impl FnOnce(&mut Value)) -> PathBuf {
 }
 
 #[test]
-fn texcoords_reading_the_normals_skip_their_texture_with_a_warning() {
+fn texcoords_reading_the_normals_are_refused_with_the_texture_named() {
     let dir = scratch("uv-normals");
     // TEXCOORD_0 reads the first two components of every normal: UVs the
     // loader accepts, on which the seam system is singular.
@@ -180,26 +180,17 @@ fn texcoords_reading_the_normals_skip_their_texture_with_a_warning() {
         out.to_str().unwrap(),
     ]);
     let err = String::from_utf8_lossy(&o.stderr);
-    assert_eq!(o.status.code(), Some(0), "{err}");
-    assert!(err.contains("CesiumLogoFlat"), "{err}");
-    let report: Value =
-        serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
-    assert_eq!(report["textures"].as_array().unwrap().len(), 0, "{report}");
-    let warnings = report["warnings"].as_array().unwrap();
-    assert!(
-        warnings.iter().any(|w| {
-            let w = w.as_str().unwrap();
-            w.starts_with("texture CesiumLogoFlat: skipped") && w.contains("solver")
-        }),
-        "{report}"
-    );
-    let skipped = report["skipped"].as_array().unwrap();
-    assert!(
-        skipped
-            .iter()
-            .any(|s| s["image"] == 0 && s["reason"].as_str().unwrap().contains("solver")),
-        "{report}"
-    );
+    // Its only texture cannot be processed: the model is at fault, and the
+    // error names the file, the texture and why.
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    let line = err
+        .lines()
+        .find(|l| l.starts_with("error:"))
+        .unwrap_or_else(|| panic!("no error line: {err}"));
+    assert!(line.contains("BoxTextured.gltf"), "{line}");
+    assert!(line.contains("no texture can be processed"), "{line}");
+    assert!(line.contains("texture CesiumLogoFlat: skipped"), "{line}");
+    assert!(line.contains("solver"), "{line}");
     assert!(!out.join("CesiumLogoFlat.dds").exists());
 }
 

@@ -126,6 +126,16 @@ pub fn run_job(
         PipelineError::Stopped(stop) => JobError::Stopped(stop),
         e => JobError::Failed(e.to_string()),
     })?;
+    // Every texture the model binds was skipped by the solver: nothing of
+    // use would come out, and the model is at fault (its UVs), so the job
+    // fails as bad input rather than succeed empty.
+    if !model.bindings.is_empty() && out.report.textures.is_empty() && !out.unsolvable.is_empty() {
+        return Err(JobError::BadInput(format!(
+            "{}: no texture can be processed: {}",
+            input.name,
+            out.unsolvable.join("; ")
+        )));
+    }
     timings.process = t.elapsed().as_millis() as u64;
     drop(model);
 

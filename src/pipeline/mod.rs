@@ -182,6 +182,9 @@ pub struct OutputFile {
 pub struct Output {
     pub files: Vec<OutputFile>,
     pub report: Report,
+    /// The textures skipped because the seam solver could not take them
+    /// through, each as the warning that names it.
+    pub unsolvable: Vec<String>,
 }
 
 /// Runs the seam engine over every texture of `model`.
@@ -210,6 +213,7 @@ pub fn run_reporting(
     let mut textures = Vec::new();
     let mut warnings = Vec::new();
     let mut skipped = model.skipped.clone();
+    let mut unsolved = Vec::new();
     let total = model.bindings.len();
     // A texture's outcome, under the number of its image.
     type Done = (
@@ -228,6 +232,7 @@ pub fn run_reporting(
             Some((image, Err(e))) => {
                 let (skip, warning) = unsolvable(image, e)?;
                 skipped.push(skip);
+                unsolved.push(warning.clone());
                 warnings.push(warning);
             }
         }
@@ -268,7 +273,11 @@ pub fn run_reporting(
         skipped,
         warnings,
     };
-    Ok(Output { files, report })
+    Ok(Output {
+        files,
+        report,
+        unsolvable: unsolved,
+    })
 }
 
 /// A texture whose seam system the solver cannot take through (one the
