@@ -52,6 +52,22 @@ pub struct ServeArgs {
     /// re-queued [default: 30s].
     #[arg(long, env = "SEAMSTRESS_GRACE")]
     pub grace: Option<String>,
+    /// A client must send a request's whole header within this time of
+    /// connecting (of the request's first byte, on a kept-alive
+    /// connection), or the connection is closed [default: 10s].
+    #[arg(long, env = "SEAMSTRESS_HEADER_TIMEOUT")]
+    pub header_timeout: Option<String>,
+    /// A kept-alive connection that starts no new request within this time
+    /// of its last response is closed [default: 75s].
+    #[arg(long, env = "SEAMSTRESS_IDLE_TIMEOUT")]
+    pub idle_timeout: Option<String>,
+    /// Most connections open at once; past it, the connection that has
+    /// waited longest for a request is closed to make room, or, when every
+    /// connection is busy with a request, the new one is answered 503
+    /// [default: half of what the file descriptor limit (ulimit -n) leaves
+    /// after 64 + 8 per worker, between 8 and 4096].
+    #[arg(long, env = "SEAMSTRESS_MAX_CONNECTIONS")]
+    pub max_connections: Option<usize>,
     /// Largest request body, e.g. 512MiB [default: 512MiB].
     #[arg(long, env = "SEAMSTRESS_MAX_BODY")]
     pub max_body: Option<String>,
@@ -127,6 +143,9 @@ struct FileConfig {
     job_timeout: Option<Quantity>,
     retention: Option<Quantity>,
     grace: Option<Quantity>,
+    header_timeout: Option<Quantity>,
+    idle_timeout: Option<Quantity>,
+    max_connections: Option<usize>,
     max_body: Option<Quantity>,
     max_texture_size: Option<u32>,
     max_memory: Option<Quantity>,
@@ -214,6 +233,12 @@ pub struct Config {
     pub job_timeout: Duration,
     pub retention: Duration,
     pub grace: Duration,
+    /// How long a request's header may take to arrive.
+    pub header_timeout: Duration,
+    /// How long a kept-alive connection may wait for its next request.
+    pub idle_timeout: Duration,
+    /// Most connections open at once.
+    pub max_connections: usize,
     pub max_body: usize,
     pub max_texture_size: u32,
     /// Peak memory one job may use, bytes (the budget's limit).
@@ -250,6 +275,11 @@ impl Default for Config {
             job_timeout: Duration::from_secs(600),
             retention: Duration::from_secs(7 * 24 * 3600),
             grace: Duration::from_secs(30),
+            header_timeout: Duration::from_secs(10),
+            // Longer than the 60 s that load balancers commonly keep an
+            // idle connection, so that they, not the server, close it.
+            idle_timeout: Duration::from_secs(75),
+            max_connections: super::listen::default_max_connections(workers),
             max_body: 512 << 20,
             max_texture_size: 16384,
             max_memory: crate::budget::memory_per_job(workers),
@@ -334,6 +364,15 @@ impl Config {
             retention: duration("retention", &args.retention, &file.retention)?
                 .unwrap_or(d.retention),
             grace: duration("grace", &args.grace, &file.grace)?.unwrap_or(d.grace),
+            header_timeout: duration("header_timeout", &args.header_timeout, &file.header_timeout)?
+                .unwrap_or(d.header_timeout),
+            idle_timeout: duration("idle_timeout", &args.idle_timeout, &file.idle_timeout)?
+                .unwrap_or(d.idle_timeout),
+            // The reserve grows with the workers this server runs.
+            max_connections: args
+                .max_connections
+                .or(file.max_connections)
+                .unwrap_or_else(|| super::listen::default_max_connections(workers)),
             max_body,
             min_free,
             max_texture_size: args
@@ -394,6 +433,15 @@ impl Config {
         }
         if self.job_timeout.is_zero() {
             return Err(invalid("job_timeout", "must be positive"));
+        }
+        if self.header_timeout.is_zero() {
+            return Err(invalid("header_timeout", "must be positive"));
+        }
+        if self.idle_timeout.is_zero() {
+            return Err(invalid("idle_timeout", "must be positive"));
+        }
+        if self.max_connections == 0 {
+            return Err(invalid("max_connections", "must be at least 1"));
         }
         Ok(())
     }
@@ -591,6 +639,33 @@ mod tests {
         assert_eq!(cfg.retention, Duration::from_secs(7200));
         assert_eq!(cfg.max_body, 1024);
         assert_eq!(cfg.tokens[0].owner, "ci");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn connection_limits_from_the_file_and_flags() {
+        let dir = std::env::temp_dir().join(format!("seamstress-conn-cfg-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("seamstress.toml");
+        std::fs::write(
+            &path,
+            "header_timeout = \"5s\"\nidle_timeout = 30\nmax_connections = 100\n",
+        )
+        .unwrap();
+        let args = ServeArgs {
+            config: Some(path),
+            max_connections: Some(7),
+            ..ServeArgs::default()
+        };
+        let cfg = Config::resolve(&args).unwrap();
+        assert_eq!(cfg.header_timeout, Duration::from_secs(5));
+        assert_eq!(cfg.idle_timeout, Duration::from_secs(30));
+        assert_eq!(cfg.max_connections, 7);
+        let zero = ServeArgs {
+            header_timeout: Some("0s".into()),
+            ..ServeArgs::default()
+        };
+        assert!(Config::resolve(&zero).is_err());
         std::fs::remove_dir_all(&dir).unwrap();
     }
 

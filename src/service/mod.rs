@@ -22,6 +22,7 @@ pub mod files;
 mod health;
 mod isolate;
 pub mod job;
+mod listen;
 mod metrics;
 pub mod objects;
 pub mod postgres;

@@ -1,6 +1,5 @@
 //! Start-up, recovery, the background tasks, and graceful shutdown.
 
-use std::future::IntoFuture;
 use std::io::Write;
 use std::net::SocketAddr;
 use std::sync::atomic::Ordering;
@@ -250,15 +249,14 @@ pub(super) async fn run_process(
         lock: _lock,
         ..
     } = start_stores(&cfg).await?;
-    let listener = tokio::net::TcpListener::bind(&addrs[..])
-        .await
-        .map_err(|source| ServeError::Listen {
-            addr: cfg.listen.clone(),
-            source,
-        })?;
+    let listener = super::listen::bind(&addrs).map_err(|source| ServeError::Listen {
+        addr: cfg.listen.clone(),
+        source,
+    })?;
     let local = listener.local_addr()?;
     let workers = cfg.workers;
     let grace = cfg.grace;
+    let limits = super::listen::Limits::of(&cfg);
     let app: Shared = Arc::new(App::new(cfg, jobs, files));
 
     relay_store_events(&app);
@@ -278,13 +276,9 @@ pub(super) async fn run_process(
     };
 
     let (stop_http, stopped) = tokio::sync::oneshot::channel::<()>();
-    let mut server = tokio::spawn(
-        axum::serve(listener, routes)
-            .with_graceful_shutdown(async move {
-                let _ = stopped.await;
-            })
-            .into_future(),
-    );
+    let mut server = tokio::spawn(super::listen::serve(listener, routes, limits, async move {
+        let _ = stopped.await;
+    }));
     // Tests and scripts read the address from the first line of stdout.
     {
         let mut out = std::io::stdout().lock();
@@ -296,12 +290,8 @@ pub(super) async fn run_process(
     tokio::select! {
         _ = shutdown_signal() => {}
         r = &mut server => {
-            // The server stopped on its own: an accept loop failure.
-            return match r {
-                Ok(Ok(())) => Ok(()),
-                Ok(Err(e)) => Err(e.into()),
-                Err(e) => Err(std::io::Error::other(e).into()),
-            };
+            // The accept loop stopped on its own: it panicked.
+            return r.map_err(|e| std::io::Error::other(e).into());
         }
     }
     shutdown(app, stop_http, grace).await;
