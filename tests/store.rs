@@ -244,6 +244,11 @@ fn the_queue_bound_and_idempotency_keys_hold_across_servers() {
                             .unwrap();
                         created += matches!(s, Submitted::Created) as usize;
                     }
+                    // Every bounded submission is in before the keyed ones:
+                    // a keyed job is queued too, and one stored while
+                    // another server still submits would take a place under
+                    // the bound (the test once counted 19 of 20 so).
+                    start.wait();
                     // Every server takes the same key at once: one job.
                     let s = store
                         .submit(&job(&format!("keyed-{t}"), Some("k")), usize::MAX)
