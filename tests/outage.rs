@@ -184,6 +184,7 @@ fn ride_out(pg: &Postgres, s3: &Seaweed, away: Away) {
     assert_eq!(body["code"], "store_unavailable", "{body}");
     assert!(retry.is_some(), "no Retry-After");
     assert!(took < PROMPT, "submission answered in {took:?}");
+    eprintln!("{tag}: submission answered {status} in {took:?}");
     let (status, _, body, took) = timed(c.get(s.url("/readyz")));
     assert_eq!(status, 503, "{body}");
     assert!(
@@ -191,6 +192,10 @@ fn ride_out(pg: &Postgres, s3: &Seaweed, away: Away) {
         "{body}"
     );
     assert!(took < PROMPT, "/readyz answered in {took:?}");
+    eprintln!(
+        "{tag}: /readyz answered {status} in {took:?}: {}",
+        body["message"]
+    );
     let (status, _, _, took) = timed(c.get(s.url("/healthz")));
     assert_eq!(status, 200);
     assert!(took < PROMPT, "/healthz answered in {took:?}");
