@@ -1,8 +1,8 @@
 //! Whole-job wall time and peak memory of `seamstress process`, as a build
 //! farm runs it: one process per model, load to last byte written.
 //!
-//! `cargo bench --bench job` runs each model of [`JOBS`] with and without
-//! `--mips` [`RUNS`] times (`SEAMSTRESS_BENCH_RUNS` overrides), and prints
+//! `cargo bench --bench job` runs each model of [`JOBS`] with its mip chain
+//! (the default) and with `--no-mips` [`RUNS`] times (`SEAMSTRESS_BENCH_RUNS` overrides), and prints
 //! per row the median wall time, the CPU time and peak resident memory of
 //! that run, its stages from `report.json` (summed over the textures), how
 //! much of the wall time the report's stages cover, and, where Debian's
@@ -229,9 +229,9 @@ fn main() {
         for mips in [false, true] {
             let mut args = extra.to_vec();
             let mut label = name.to_string();
-            if mips {
-                args.push("--mips");
-                label.push_str(" --mips");
+            if !mips {
+                args.push("--no-mips");
+                label.push_str(" --no-mips");
             }
             rows.push((label, resolve(spec), args));
         }
@@ -239,7 +239,7 @@ fn main() {
     let label = "WaterBottle baseColor alone".to_string();
     if filters.is_empty() || filters.iter().any(|f| label.contains(f.as_str())) {
         match water_bottle_base_colour(&scratch.join("bottle")) {
-            Ok(model) => rows.insert(6, (label, model, Vec::new())),
+            Ok(model) => rows.insert(6, (label, model, vec!["--no-mips"])),
             Err(e) => println!("{label}: cannot make the model: {e}"),
         }
     }
@@ -267,7 +267,7 @@ fn main() {
                     }
                 });
             match made {
-                Ok(model) => rows.push((label, model, Vec::new())),
+                Ok(model) => rows.push((label, model, vec!["--no-mips"])),
                 Err(e) => println!("{label}: cannot make the model: {e}"),
             }
         }
@@ -303,7 +303,7 @@ fn main() {
         // encoding): their stages cover the wall time of one texture only.
         let cover = (count == 1).then(|| (load + textures_ms) as f64 / 1000.0 / run.wall);
         let nv = if has_nv {
-            nvcompress(&out, args.contains(&"--mips"), runs)
+            nvcompress(&out, !args.contains(&"--no-mips"), runs)
         } else {
             None
         };
@@ -343,9 +343,9 @@ fn main() {
         }
     };
     println!("\nGoals:");
-    goal("Fox --mips wall", get("Fox --mips").map(|f| f.0), 1.5, "s");
-    goal("Fox wall", get("Fox").map(|f| f.0), 1.0, "s");
-    for mips in ["", " --mips"] {
+    goal("Fox wall", get("Fox").map(|f| f.0), 1.5, "s");
+    goal("Fox --no-mips wall", get("Fox --no-mips").map(|f| f.0), 1.0, "s");
+    for mips in [" --no-mips", ""] {
         if let Some(fox) = get(&format!("Fox{mips}")) {
             for atlas in ["blub_atlas_black", "blub_atlas_dilated"] {
                 goal(
@@ -366,7 +366,7 @@ fn main() {
     );
     goal(
         "WaterBottle / its base colour alone",
-        get("WaterBottle")
+        get("WaterBottle --no-mips")
             .zip(get("WaterBottle baseColor alone"))
             .map(|(all, alone)| all.0 / alone.0),
         1.3,

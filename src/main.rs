@@ -136,8 +136,13 @@ struct OptionArgs {
     /// α: how much seam agreement weighs against fidelity in seam-aware BC1.
     #[arg(long, default_value_t = DEFAULT_SEAM_WEIGHT)]
     seam_weight: f64,
-    /// Write the full mip chain, each level erased and encoded on its own.
-    #[arg(long)]
+    /// Write level 0 only. By default the DDS holds the whole mip chain,
+    /// each level erased and encoded on its own.
+    #[arg(long, overrides_with = "mips")]
+    no_mips: bool,
+    /// The default; still accepted from scripts written when the chain had
+    /// to be asked for.
+    #[arg(long, hide = true, overrides_with = "no_mips")]
     mips: bool,
     /// Write the DX10 header (BC1_UNORM, or BC1_UNORM_SRGB for colour textures).
     #[arg(long)]
@@ -185,7 +190,8 @@ impl OptionArgs {
             bc1_level: self.bc1_level,
             seam_aware: !self.no_seam_aware,
             seam_weight: self.seam_weight,
-            mips: self.mips,
+            // The two flags override each other: the last one given holds.
+            mips: self.mips || !self.no_mips,
             dx10: self.dx10,
             extra_maps: self.extra_maps,
             seam_tolerance: self.seam_tolerance,
@@ -467,5 +473,22 @@ mod tests {
             unreachable!("parsed as process")
         };
         assert_eq!(args.options.options(), ProcessOptions::default());
+    }
+
+    #[test]
+    fn mips_are_on_unless_no_mips_comes_last() {
+        let mips = |flags: &[&str]| {
+            let argv = ["seamstress", "process", "m.glb", "--out", "o"];
+            let cli = Cli::try_parse_from(argv.iter().chain(flags)).unwrap();
+            let Command::Process(args) = cli.command else {
+                unreachable!("parsed as process")
+            };
+            args.options.options().mips
+        };
+        assert!(mips(&[]));
+        assert!(mips(&["--mips"]));
+        assert!(!mips(&["--no-mips"]));
+        assert!(!mips(&["--mips", "--no-mips"]));
+        assert!(mips(&["--no-mips", "--mips"]));
     }
 }

@@ -326,7 +326,6 @@ fn outputs_are_identical_on_one_and_two_threads() {
             .args([
                 "process",
                 model.to_str().unwrap(),
-                "--mips",
                 "--pictures",
                 "--out",
             ])

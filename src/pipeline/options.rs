@@ -53,6 +53,9 @@ pub struct ProcessOptions {
     pub bc1_level: Level,
     pub seam_aware: bool,
     pub seam_weight: f64,
+    /// Write the whole mip chain, each level erased and encoded on its own.
+    /// On by default, as the usual compressors write it: a single level
+    /// aliases wherever the texture is drawn smaller than its size.
     pub mips: bool,
     pub dx10: bool,
     /// Also process occlusion and metallic-roughness textures.
@@ -105,7 +108,7 @@ impl Default for ProcessOptions {
             bc1_level: Level::Default,
             seam_aware: true,
             seam_weight: DEFAULT_SEAM_WEIGHT,
-            mips: false,
+            mips: true,
             dx10: false,
             extra_maps: false,
             seam_tolerance: DEFAULT_SEAM_TOLERANCE,
@@ -264,7 +267,7 @@ mod tests {
     fn query_values_take_the_options_types() {
         let mut o = OptionPatch::default();
         o.set_from_query("mode", "global").unwrap();
-        o.set_from_query("mips", "true").unwrap();
+        o.set_from_query("mips", "false").unwrap();
         o.set_from_query("bc1_level", "fast").unwrap();
         o.set_from_query("seam_weight", "12.5").unwrap();
         assert!(o.set_from_query("mode", "sideways").is_err());
@@ -273,7 +276,7 @@ mod tests {
         assert!(o.set_from_query("colour", "red").is_err());
         let r = o.resolve(&ProcessOptions::default()).unwrap();
         assert_eq!(r.mode, Mode::Global);
-        assert!(r.mips);
+        assert!(!r.mips);
         assert_eq!(r.bc1_level, Level::Fast);
         assert_eq!(r.seam_weight, 12.5);
         let mut bad = OptionPatch::default();
@@ -288,8 +291,8 @@ mod tests {
         assert!(OptionPatch::from_json(br#"{"colour": 1}"#).is_err());
         assert!(OptionPatch::from_json(br#"{"mips": "often"}"#).is_err());
         assert!(OptionPatch::from_json(b"[1]").is_err());
-        let p = OptionPatch::from_json(br#"{"mips": true}"#).unwrap();
-        assert!(p.resolve(&ProcessOptions::default()).unwrap().mips);
+        let p = OptionPatch::from_json(br#"{"mips": false}"#).unwrap();
+        assert!(!p.resolve(&ProcessOptions::default()).unwrap().mips);
     }
 
     #[test]
@@ -321,5 +324,7 @@ mod tests {
         assert_eq!(round, d);
         let whole = OptionPatch::from(&d).resolve(&ProcessOptions::service_default());
         assert_eq!(whole.unwrap(), d);
+        // A new job gets a mip chain from the service as from `process`.
+        assert!(d.mips && ProcessOptions::service_default().mips);
     }
 }

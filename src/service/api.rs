@@ -884,9 +884,9 @@ mod tests {
 
     #[test]
     fn query_options_and_name() {
-        let (o, n) = parse_query(Some("mode=global&mips=1&name=Box%20A.glb")).unwrap();
+        let (o, n) = parse_query(Some("mode=global&mips=0&name=Box%20A.glb")).unwrap();
         assert_eq!(n.name.as_deref(), Some("Box A.glb"));
-        assert!(o.resolve(&ProcessOptions::default()).unwrap().mips);
+        assert!(!o.resolve(&ProcessOptions::default()).unwrap().mips);
         assert!(parse_query(Some("name=../x.glb")).is_err());
         assert!(parse_query(Some("name=x.png")).is_err());
         assert!(parse_query(Some("colour=red")).is_err());
