@@ -344,7 +344,12 @@ fn main() {
     };
     println!("\nGoals:");
     goal("Fox wall", get("Fox").map(|f| f.0), 1.5, "s");
-    goal("Fox --no-mips wall", get("Fox --no-mips").map(|f| f.0), 1.0, "s");
+    goal(
+        "Fox --no-mips wall",
+        get("Fox --no-mips").map(|f| f.0),
+        1.0,
+        "s",
+    );
     for mips in [" --no-mips", ""] {
         if let Some(fox) = get(&format!("Fox{mips}")) {
             for atlas in ["blub_atlas_black", "blub_atlas_dilated"] {

@@ -323,12 +323,7 @@ fn outputs_are_identical_on_one_and_two_threads() {
         let out = scratch(&format!("threads-{threads}"));
         let o = Command::new(env!("CARGO_BIN_EXE_seamstress"))
             .env("RAYON_NUM_THREADS", threads)
-            .args([
-                "process",
-                model.to_str().unwrap(),
-                "--pictures",
-                "--out",
-            ])
+            .args(["process", model.to_str().unwrap(), "--pictures", "--out"])
             .arg(&out)
             .output()
             .expect("seamstress runs");
