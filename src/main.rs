@@ -210,9 +210,18 @@ struct SubmitArgs {
     batch: BatchArgs,
     #[command(flatten)]
     options: OptionArgs,
-    /// The server: http://HOST:PORT.
+    /// The server: http://HOST:PORT (a bare HOST:PORT is taken as http://).
     #[arg(long, value_name = "URL")]
     server: String,
+    /// How long a request waits for a server that is unreachable or busy
+    /// (503, 429), retrying with backoff, before its model fails (30s, 10m).
+    #[arg(
+        long,
+        value_name = "DURATION",
+        default_value = "10m",
+        value_parser = seamstress::service::config::parse_duration
+    )]
+    give_up_after: std::time::Duration,
     /// The bearer token, if the server asks for one.
     #[arg(long, env = "SEAMSTRESS_TOKEN", hide_env_values = true)]
     token: Option<String>,
@@ -352,7 +361,10 @@ fn submit(args: &SubmitArgs) -> Result<(), Failure> {
     let params = RemoteParams {
         server: args.server.clone(),
         token: args.token.clone(),
-        retry: RetryParams::default(),
+        retry: RetryParams {
+            give_up_after: args.give_up_after,
+            ..RetryParams::default()
+        },
         poll: std::time::Duration::from_millis(250),
     };
     let remote = Remote::new(params, options)?;

@@ -183,3 +183,86 @@ fn a_wrong_token_fails_with_status_1_and_the_right_one_succeeds() {
     assert!(out.join("cube_gradient_128.dds").is_file());
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn an_address_the_client_cannot_speak_to_fails_at_once_with_status_2() {
+    let dir = scratch("address");
+    let model = common::shared_assets().join("cube/cube_gradient_128.glb");
+    let out = dir.join("out");
+    for (server, says) in [
+        (
+            "ftp://127.0.0.1:8080",
+            "ftp:// is not a scheme this client speaks",
+        ),
+        ("https://127.0.0.1:8080", "plain HTTP only"),
+        ("http://127.0.0.1:99999", "not a URL: invalid port number"),
+        ("http://", "not a URL: empty host"),
+        ("127.0.0.1:8080/?x=1", "no query or fragment"),
+    ] {
+        let started = Instant::now();
+        let o = seamstress("submit", &model, &out, &["--server", server])
+            .output()
+            .unwrap();
+        let took = started.elapsed();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{server}: {err}");
+        assert!(took < Duration::from_secs(1), "{server}: {took:?}");
+        let lines: Vec<&str> = err
+            .lines()
+            .filter(|l| !l.contains("has no scheme"))
+            .collect();
+        assert_eq!(lines.len(), 1, "{server}: {err}");
+        assert!(
+            lines[0].starts_with(&format!("error: --server {server}: ")),
+            "{err}"
+        );
+        assert!(lines[0].contains(says), "{server}: {err}");
+    }
+    assert!(
+        !out.exists(),
+        "nothing is written before the address is checked"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn against_a_closed_port_each_retry_is_said_and_the_batch_gives_up() {
+    let dir = scratch("closed");
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let server = format!("127.0.0.1:{port}");
+    let started = Instant::now();
+    // Three models, two at once: the third starts after the first two
+    // gave up.
+    let (o, s, err) = run(seamstress(
+        "submit",
+        &common::shared_assets().join("cube"),
+        &dir.join("out"),
+        &["--server", &server, "--give-up-after", "2s"],
+    ));
+    let took = started.elapsed();
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains(&format!(
+            "--server {server} has no scheme: taken as http://{server}"
+        )),
+        "{err}"
+    );
+    assert!(
+        err.contains("server unreachable, retry 1 in 250 ms, giving up in 2 s"),
+        "{err}"
+    );
+    let retries = err.matches("server unreachable, retry ").count();
+    assert!(retries >= 4, "two models, each retried: {err}");
+    assert!(err.contains("gave up after 3 retries"), "{err}");
+    assert!(
+        err.contains("stayed unreachable for an earlier model"),
+        "{err}"
+    );
+    assert_eq!(s["failed"], 3, "{s}");
+    assert!(took < Duration::from_secs(20), "{took:?}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -12,6 +12,7 @@
 pub mod retry;
 
 use std::path::Path;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 use reqwest::blocking::{multipart, Client, RequestBuilder};
@@ -28,7 +29,8 @@ use retry::{with_retries, RequestError, RetryParams};
 /// Where the server is and how to talk to it.
 #[derive(Clone, Debug)]
 pub struct RemoteParams {
-    /// `http://host:port`, without the `/v1/...` path.
+    /// `http://host:port` (or `host:port`, taken as `http://`), without
+    /// the `/v1/...` path.
     pub server: String,
     pub token: Option<String>,
     pub retry: RetryParams,
@@ -41,6 +43,66 @@ pub struct Remote {
     params: RemoteParams,
     options: ProcessOptions,
     http: Client,
+    /// Set once a request has waited its whole retry budget for the
+    /// server: the batch's later models then fail at once instead of each
+    /// waiting as long again for a server that is gone.
+    unreachable: AtomicBool,
+}
+
+/// Why `--server` cannot name a server this client can talk to.
+#[derive(Debug, thiserror::Error)]
+pub enum ServerUrlError {
+    #[error("--server {text}: not a URL: {reason}")]
+    Unparsable { text: String, reason: String },
+    #[error(
+        "--server {text}: this client speaks plain HTTP only; give the server's http:// \
+         address (TLS belongs to a proxy on the server's side)"
+    )]
+    Https { text: String },
+    #[error(
+        "--server {text}: {scheme}:// is not a scheme this client speaks; give http://HOST:PORT"
+    )]
+    Scheme { text: String, scheme: String },
+    #[error("--server {text}: a server's address has no query or fragment; give http://HOST:PORT")]
+    QueryOrFragment { text: String },
+}
+
+/// The address requests are made under, from what `--server` says, and
+/// whether `http://` was assumed. A scheme-less `HOST:PORT` is taken as
+/// `http://`, as curl takes it; anything the client cannot reach is
+/// refused here, before a batch starts, rather than retried for minutes.
+pub fn server_base(text: &str) -> Result<(String, bool), ServerUrlError> {
+    let text = text.trim();
+    let assumed = !text.contains("://");
+    let full = if assumed {
+        format!("http://{text}")
+    } else {
+        text.to_string()
+    };
+    let url = reqwest::Url::parse(&full).map_err(|e| ServerUrlError::Unparsable {
+        text: text.to_string(),
+        reason: e.to_string(),
+    })?;
+    match url.scheme() {
+        "http" => {}
+        "https" => return Err(ServerUrlError::Https { text: text.into() }),
+        scheme => {
+            return Err(ServerUrlError::Scheme {
+                text: text.into(),
+                scheme: scheme.into(),
+            })
+        }
+    }
+    if url.host_str().is_none_or(str::is_empty) {
+        return Err(ServerUrlError::Unparsable {
+            text: text.into(),
+            reason: "no host".into(),
+        });
+    }
+    if url.query().is_some() || url.fragment().is_some() {
+        return Err(ServerUrlError::QueryOrFragment { text: text.into() });
+    }
+    Ok((url.as_str().trim_end_matches('/').to_string(), assumed))
 }
 
 /// What the client reads of a job.
@@ -79,7 +141,14 @@ struct FileView {
 const BAD_INPUT_CODES: &[&str] = &["invalid_model", "too_large", "invalid_options"];
 
 impl Remote {
+    /// A client for `params.server`; an address it cannot reach is the
+    /// caller's input at fault.
     pub fn new(params: RemoteParams, options: ProcessOptions) -> Result<Remote, RunError> {
+        let (server, assumed) =
+            server_base(&params.server).map_err(|e| RunError::BadInput(e.to_string()))?;
+        if assumed {
+            tracing::warn!(server = %server, "--server {} has no scheme: taken as {server}", params.server.trim());
+        }
         let http = Client::builder()
             .connect_timeout(Duration::from_secs(10))
             // Uploads and downloads of large models take a while; a stuck
@@ -87,12 +156,32 @@ impl Remote {
             .timeout(Duration::from_secs(600))
             .build()
             .map_err(|e| RunError::Internal(format!("cannot start the HTTP client: {e}")))?;
-        let server = params.server.trim_end_matches('/').to_string();
         Ok(Remote {
             params: RemoteParams { server, ..params },
             options,
             http,
+            unreachable: AtomicBool::new(false),
         })
+    }
+
+    /// [`with_retries`], unless an earlier request already found the
+    /// server gone for a whole retry budget.
+    fn retried(
+        &self,
+        what: &str,
+        send: impl FnMut() -> reqwest::Result<reqwest::blocking::Response>,
+    ) -> Result<reqwest::blocking::Response, RequestError> {
+        if self.unreachable.load(Ordering::Relaxed) {
+            return Err(RequestError::Transport(format!(
+                "{what}: not tried: {} stayed unreachable for an earlier model",
+                self.params.server
+            )));
+        }
+        let result = with_retries(&self.params.retry, what, send);
+        if matches!(result, Err(RequestError::Transport(_))) {
+            self.unreachable.store(true, Ordering::Relaxed);
+        }
+        result
     }
 
     fn authorised(&self, req: RequestBuilder) -> RequestBuilder {
@@ -150,7 +239,8 @@ impl Remote {
             };
             self.authorised(req.header("Idempotency-Key", key)).send()
         };
-        let resp = with_retries(&self.params.retry, "upload", send)
+        let resp = self
+            .retried("upload", send)
             .map_err(|e| request_failed(&model.name, "upload", e))?;
         resp.json::<JobView>()
             .map_err(|e| RunError::Internal(format!("{}: the server's answer: {e}", model.name)))
@@ -158,10 +248,9 @@ impl Remote {
 
     fn job(&self, id: &str, name: &str) -> Result<JobView, RunError> {
         let url = format!("{}/v1/jobs/{id}", self.params.server);
-        let resp = with_retries(&self.params.retry, "job status", || {
-            self.authorised(self.http.get(&url)).send()
-        })
-        .map_err(|e| request_failed(name, "job status", e))?;
+        let resp = self
+            .retried("job status", || self.authorised(self.http.get(&url)).send())
+            .map_err(|e| request_failed(name, "job status", e))?;
         resp.json::<JobView>()
             .map_err(|e| RunError::Internal(format!("{name}: the server's answer: {e}")))
     }
@@ -190,10 +279,9 @@ impl Remote {
     fn download(&self, file: &FileView, name: &str) -> Result<Vec<u8>, RunError> {
         let url = format!("{}{}", self.params.server, file.url);
         let what = format!("download of {}", file.name);
-        let resp = with_retries(&self.params.retry, &what, || {
-            self.authorised(self.http.get(&url)).send()
-        })
-        .map_err(|e| request_failed(name, &what, e))?;
+        let resp = self
+            .retried(&what, || self.authorised(self.http.get(&url)).send())
+            .map_err(|e| request_failed(name, &what, e))?;
         let bytes = resp
             .bytes()
             .map_err(|e| RunError::Internal(format!("{name}: {what}: {e}")))?;
@@ -235,7 +323,9 @@ fn request_failed(name: &str, what: &str, e: RequestError) -> RunError {
         RequestError::Status { status, body } => {
             RunError::Internal(format!("{name}: {what}: {status}: {}", message(&body)))
         }
-        RequestError::Transport(m) => RunError::Internal(format!("{name}: {m}")),
+        RequestError::Transport(m) | RequestError::Unusable(m) => {
+            RunError::Internal(format!("{name}: {m}"))
+        }
     }
 }
 

@@ -32,6 +32,11 @@ impl Default for RetryParams {
 /// status no retry changes.
 #[derive(Debug, thiserror::Error)]
 pub enum RequestError {
+    /// The request cannot even be built (a URL the HTTP client refuses):
+    /// waiting would only hide that.
+    #[error("{0}")]
+    Unusable(String),
+    /// No answer within the retry budget.
     #[error("{0}")]
     Transport(String),
     #[error("{status}: {body}")]
@@ -43,7 +48,8 @@ pub enum RequestError {
 fn transient(status: StatusCode) -> bool {
     matches!(
         status,
-        StatusCode::TOO_MANY_REQUESTS
+        StatusCode::REQUEST_TIMEOUT
+            | StatusCode::TOO_MANY_REQUESTS
             | StatusCode::BAD_GATEWAY
             | StatusCode::SERVICE_UNAVAILABLE
             | StatusCode::GATEWAY_TIMEOUT
@@ -65,8 +71,31 @@ fn retry_after(resp: &Response) -> Option<Duration> {
     Some(Duration::from_secs(secs))
 }
 
+/// The innermost cause of a transport error ("Connection refused (os error
+/// 111)"): the outer ones repeat the whole URL, options and all.
+fn cause(e: &reqwest::Error) -> String {
+    let mut inner: &dyn std::error::Error = e;
+    while let Some(next) = inner.source() {
+        inner = next;
+    }
+    inner.to_string()
+}
+
+/// A wait as a person reads it: "250 ms", "8 s", "9 min 20 s".
+pub fn human(d: Duration) -> String {
+    let secs = d.as_secs_f64().round() as u64;
+    match d.as_millis() {
+        ms if ms < 1000 => format!("{ms} ms"),
+        _ if secs < 60 => format!("{secs} s"),
+        _ if secs.is_multiple_of(60) => format!("{} min", secs / 60),
+        _ => format!("{} min {} s", secs / 60, secs % 60),
+    }
+}
+
 /// Sends what `send` builds until a response comes that a retry would not
 /// change; success statuses and other errors are returned as they are.
+/// Each retry is logged as a warning: a batch waiting on a server that is
+/// down must say so, not sit silent for the whole budget.
 pub fn with_retries(
     params: &RetryParams,
     what: &str,
@@ -74,8 +103,9 @@ pub fn with_retries(
 ) -> Result<Response, RequestError> {
     let started = Instant::now();
     let mut wait = params.first_wait;
+    let mut retries = 0u32;
     loop {
-        let (error, asked) = match send() {
+        let (error, asked, reason) = match send() {
             Ok(resp) if resp.status().is_success() || resp.status().is_redirection() => {
                 return Ok(resp)
             }
@@ -83,21 +113,60 @@ pub fn with_retries(
                 let asked = retry_after(&resp);
                 let status = resp.status();
                 let body = resp.text().unwrap_or_default();
-                (RequestError::Status { status, body }, asked)
+                let reason = format!("server answered {status}");
+                (RequestError::Status { status, body }, asked, reason)
             }
             Ok(resp) => {
                 let status = resp.status();
                 let body = resp.text().unwrap_or_default();
                 return Err(RequestError::Status { status, body });
             }
-            Err(e) => (RequestError::Transport(format!("{what}: {e}")), None),
+            Err(e) if e.is_builder() => {
+                return Err(RequestError::Unusable(format!("{what}: {}", cause(&e))))
+            }
+            Err(e) => {
+                let error = RequestError::Transport(cause(&e));
+                (error, None, "server unreachable".to_string())
+            }
         };
         let pause = asked.unwrap_or(wait).min(params.max_wait.max(wait));
-        if started.elapsed() + pause > params.give_up_after {
-            return Err(error);
+        let elapsed = started.elapsed();
+        if elapsed + pause > params.give_up_after {
+            return Err(match error {
+                RequestError::Transport(cause) => RequestError::Transport(format!(
+                    "{what}: {reason}, gave up after {retries} {} in {}: {cause}",
+                    if retries == 1 { "retry" } else { "retries" },
+                    human(elapsed)
+                )),
+                other => other,
+            });
         }
-        tracing::debug!(request = what, error = %error, wait_ms = pause.as_millis() as u64, "retrying");
+        retries += 1;
+        let left = params.give_up_after.saturating_sub(elapsed);
+        tracing::warn!(
+            request = what,
+            error = %error,
+            retry = retries,
+            wait_ms = pause.as_millis() as u64,
+            give_up_in_ms = left.as_millis() as u64,
+            "{reason}, retry {retries} in {}, giving up in {}",
+            human(pause),
+            human(left)
+        );
         std::thread::sleep(pause);
         wait = (wait * 2).min(params.max_wait);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn waits_read_as_a_person_says_them() {
+        assert_eq!(human(Duration::from_millis(250)), "250 ms");
+        assert_eq!(human(Duration::from_millis(8_200)), "8 s");
+        assert_eq!(human(Duration::from_secs(560)), "9 min 20 s");
+        assert_eq!(human(Duration::from_secs(600)), "10 min");
     }
 }
