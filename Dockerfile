@@ -16,8 +16,11 @@ WORKDIR /src
 # Cargo.toml names (autobenches is off) and fails on a missing file, so each
 # gets a stub; the names are read from Cargo.toml, so that a new bench needs
 # no change here. (No [[test]] or [[example]] is named there: tests/ and
-# examples/ are found automatically, and left out of the image.)
+# examples/ are found automatically, and left out of the image.) Cargo
+# loads every path dependency, dev ones too: the tests' `needs` macro is
+# copied for that, though no release build compiles it.
 COPY Cargo.toml Cargo.lock ./
+COPY tests/needs ./tests/needs
 RUN mkdir -p src benches \
     && echo 'fn main() {}' > src/main.rs \
     && touch src/lib.rs \

@@ -7,6 +7,7 @@ use std::process::Command;
 use serde_json::Value;
 
 mod common;
+use needs::needs;
 
 fn shared() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared")
@@ -80,6 +81,7 @@ fn close(ours: &Value, theirs: &Value, what: &str) {
     );
 }
 
+#[needs(python)]
 #[test]
 fn reports_agree_with_the_independent_evaluator() {
     if !common::PYTHON.available() {
@@ -139,6 +141,7 @@ fn reports_agree_with_the_independent_evaluator() {
 
 /// The evaluator decodes the DDS with each GPU's palette rounding and
 /// measures what the report says for that decoder.
+#[needs(python)]
 #[test]
 fn per_decoder_figures_agree_with_the_independent_evaluator() {
     if !common::PYTHON.available() {
@@ -168,6 +171,7 @@ fn per_decoder_figures_agree_with_the_independent_evaluator() {
 /// The evaluator's own judgement of which seams should agree (sides within
 /// 16 levels as their charts paint them) and its PSNR per UV chart confirm
 /// what the report says: the agreeing seams close, no chart is repainted.
+#[needs(python)]
 #[test]
 fn the_evaluator_confirms_that_charts_painted_apart_are_kept() {
     if !common::PYTHON.available() {
@@ -363,6 +367,7 @@ fn no_new_errors(verdict: &Value, source: &Path, what: &str) {
     }
 }
 
+#[needs(gltf_validator)]
 #[test]
 fn rewritten_models_pass_the_khronos_validator() {
     if !common::GLTF_VALIDATOR.available() {

@@ -17,6 +17,7 @@ use serde_json::Value;
 mod common;
 use common::cluster::{Postgres, Seaweed};
 use common::{report_without_timings, shared_assets};
+use needs::needs;
 
 /// Short leases, so that a killed worker's job comes back within seconds.
 const LEASE: &str = "2s";
@@ -225,6 +226,7 @@ fn same_files(got: &BTreeMap<String, Vec<u8>>, want: &BTreeMap<String, Vec<u8>>,
     }
 }
 
+#[needs(postgres, seaweedfs)]
 #[test]
 fn two_api_servers_and_three_workers_lose_nothing() {
     let (Some(pg), Some(s3)) = (Postgres::start(), Seaweed::start()) else {

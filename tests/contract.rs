@@ -8,10 +8,12 @@ use std::time::{Duration, Instant};
 
 mod common;
 use common::server::Server;
+use needs::needs;
 
 /// Far above the run's own bound (`--max-time`), for a hung request.
 const DEADLINE: Duration = Duration::from_secs(900);
 
+#[needs(schemathesis)]
 #[test]
 fn no_generated_request_gets_a_server_error() {
     if !common::SCHEMATHESIS.available() {

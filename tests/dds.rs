@@ -8,6 +8,7 @@ use seamstress::bc1::dds::{read_dds, write_dds, DdsHeaderKind, MipLevel};
 use seamstress::bc1::{self, Block};
 
 mod common;
+use needs::needs;
 
 fn asset(rel: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
@@ -155,6 +156,7 @@ fn worst_difference(pillow: &[u8], ours: &[f32]) -> f32 {
         .fold(0.0f32, f32::max)
 }
 
+#[needs(python)]
 #[test]
 fn pillow_decodes_what_we_encoded() {
     if !common::PYTHON.available() {
@@ -177,6 +179,7 @@ fn pillow_decodes_what_we_encoded() {
 /// A size that is not a multiple of 4 (padded blocks), under both headers
 /// Pillow reads. (It does not read BC1_UNORM_SRGB, which differs from
 /// BC1_UNORM only in the format code.)
+#[needs(python)]
 #[test]
 fn pillow_reads_padded_blocks_under_both_headers() {
     if !common::PYTHON.available() {

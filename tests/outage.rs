@@ -18,6 +18,7 @@ use serde_json::{json, Value};
 mod common;
 use common::cluster::{Postgres, Seaweed};
 use common::shared_assets;
+use needs::needs;
 
 /// How long the store stays away: the figure.
 const OUTAGE: Duration = Duration::from_secs(20);
@@ -259,6 +260,7 @@ fn ride_out(pg: &Postgres, s3: &Seaweed, away: Away) {
 
 /// One after the other, on one pair of servers: each outage must be the
 /// only thing going on.
+#[needs(postgres, seaweedfs)]
 #[test]
 fn jobs_ride_out_either_store_going_away() {
     let (Some(pg), Some(s3)) = (Postgres::start(), Seaweed::start()) else {

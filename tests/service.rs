@@ -12,6 +12,7 @@ use serde_json::{json, Value};
 
 mod common;
 use common::server::Server;
+use needs::needs;
 
 fn assets() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/assets")
@@ -1280,6 +1281,7 @@ impl Drop for SmallDisk {
     }
 }
 
+#[needs(tmpfs)]
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_full_disk_delays_jobs_and_says_so() {
     if common::server::on_cluster() {

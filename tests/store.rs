@@ -20,6 +20,7 @@ use seamstress::service::store::{FileStore, JobStore, Lease, Submitted};
 
 mod common;
 use common::cluster::{Postgres, Seaweed};
+use needs::needs;
 
 /// One PostgreSQL server for the file, a database per store; and a runtime
 /// for its connections.
@@ -93,11 +94,37 @@ fn lease(worker: &str, until_ms: u64) -> Lease<'_> {
     Lease { worker, until_ms }
 }
 
-const KINDS: [&str; 2] = ["sqlite", "postgres"];
+/// Each job-store test twice: on SQLite, and on PostgreSQL, which is
+/// ignored where PostgreSQL is not installed.
+macro_rules! on_each_job_store {
+    ($($test:ident),* $(,)?) => {
+        mod sqlite {
+            $(#[test]
+            fn $test() {
+                super::$test(&["sqlite"]);
+            })*
+        }
+        mod postgres {
+            use needs::needs;
+            $(#[needs(postgres)]
+            #[test]
+            fn $test() {
+                super::$test(&["postgres"]);
+            })*
+        }
+    };
+}
 
-#[test]
-fn concurrent_claims_take_each_job_once() {
-    for kind in KINDS {
+on_each_job_store!(
+    concurrent_claims_take_each_job_once,
+    a_lease_that_runs_out_gives_the_job_to_another_worker,
+    a_job_whose_server_keeps_dying_is_never_charged_but_ends,
+    a_cancel_refuses_the_running_workers_lease,
+    the_queue_bound_and_idempotency_keys_hold_across_servers,
+);
+
+fn concurrent_claims_take_each_job_once(kinds: &[&str]) {
+    for &kind in kinds {
         let Some(stores) = stores(kind, "claims", 4) else {
             continue;
         };
@@ -140,9 +167,8 @@ fn concurrent_claims_take_each_job_once() {
     }
 }
 
-#[test]
-fn a_lease_that_runs_out_gives_the_job_to_another_worker() {
-    for kind in KINDS {
+fn a_lease_that_runs_out_gives_the_job_to_another_worker(kinds: &[&str]) {
+    for &kind in kinds {
         let Some(stores) = stores(kind, "leases", 2) else {
             continue;
         };
@@ -174,9 +200,8 @@ fn a_lease_that_runs_out_gives_the_job_to_another_worker() {
     }
 }
 
-#[test]
-fn a_job_whose_server_keeps_dying_is_never_charged_but_ends() {
-    for kind in KINDS {
+fn a_job_whose_server_keeps_dying_is_never_charged_but_ends(kinds: &[&str]) {
+    for &kind in kinds {
         let Some(stores) = stores(kind, "attempts", 1) else {
             continue;
         };
@@ -200,9 +225,8 @@ fn a_job_whose_server_keeps_dying_is_never_charged_but_ends() {
     }
 }
 
-#[test]
-fn a_cancel_refuses_the_running_workers_lease() {
-    for kind in KINDS {
+fn a_cancel_refuses_the_running_workers_lease(kinds: &[&str]) {
+    for &kind in kinds {
         let Some(stores) = stores(kind, "cancel", 2) else {
             continue;
         };
@@ -222,9 +246,8 @@ fn a_cancel_refuses_the_running_workers_lease() {
     }
 }
 
-#[test]
-fn the_queue_bound_and_idempotency_keys_hold_across_servers() {
-    for kind in KINDS {
+fn the_queue_bound_and_idempotency_keys_hold_across_servers(kinds: &[&str]) {
+    for &kind in kinds {
         let Some(stores) = stores(kind, "submits", 4) else {
             continue;
         };
@@ -275,13 +298,24 @@ fn the_queue_bound_and_idempotency_keys_hold_across_servers() {
 /// of a blob that is not there (an error), alike on both file stores.
 #[test]
 fn file_stores_read_ranges_alike() {
+    read_ranges(false);
+}
+
+/// The same with the S3 store beside the folder.
+#[needs(seaweedfs)]
+#[test]
+fn file_stores_read_ranges_alike_on_s3() {
+    read_ranges(true);
+}
+
+fn read_ranges(with_s3: bool) {
     let dir = std::env::temp_dir().join(format!("seamstress-files-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     let mut stores: Vec<(&str, Box<dyn FileStore>)> =
         vec![("folder", Box::new(LocalFileStore::open(&dir).unwrap()))];
     let rt = tokio::runtime::Runtime::new().unwrap();
-    let seaweed = Seaweed::start();
+    let seaweed = if with_s3 { Seaweed::start() } else { None };
     if let Some(s3) = &seaweed {
         for (name, value) in s3.env() {
             std::env::set_var(name, value);

@@ -14,6 +14,7 @@ use std::time::{Duration, Instant};
 use serde_json::Value;
 
 mod common;
+use needs::needs;
 
 /// How long one page may take, loading included; a render takes about 3 s.
 const PAGE_TIMEOUT: Duration = Duration::from_secs(60);
@@ -252,6 +253,7 @@ const CASES: &[Case] = &[
 /// (a black texture) it is 0, as the scene has ambient light only.
 const MIN_NONBLACK: f64 = 0.5;
 
+#[needs(chromium, python)]
 #[test]
 fn dds_textures_render_in_webgl() {
     if !common::CHROMIUM.available() || !common::PYTHON.available() {

@@ -58,9 +58,12 @@ pub struct Tool {
 }
 
 impl Tool {
-    /// Whether the tool runs here. Without it a test says so on stderr and
-    /// passes, so that `cargo test` works on a machine with only Rust; with
-    /// `SEAMSTRESS_REQUIRE_TOOLS` set, a missing tool fails the test.
+    /// Whether the tool runs here. A test that needs it throughout is
+    /// marked `#[needs(...)]`, ignored where the tool was missing when the
+    /// tests were built; this check covers a tool gone since, and the
+    /// checks that a test makes only where the tool is (they say so on
+    /// stderr and pass). With `SEAMSTRESS_REQUIRE_TOOLS` set, a missing
+    /// tool fails the test.
     pub fn available(&self) -> bool {
         let runs = Command::new(self.probe[0])
             .args(&self.probe[1..])
