@@ -42,7 +42,7 @@ pub fn needs(args: TokenStream, item: TokenStream) -> TokenStream {
 /// on servers the tools start, all of whose tests need them.
 #[proc_macro]
 pub fn module(input: TokenStream) -> TokenStream {
-    let mut tokens = input.clone().into_iter();
+    let mut tokens = input.into_iter();
     let (Some(TokenTree::Punct(hash)), Some(TokenTree::Group(attr))) =
         (tokens.next(), tokens.next())
     else {
