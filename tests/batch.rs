@@ -98,7 +98,11 @@ fn a_folder_of_every_shared_model_with_a_bad_one_then_from_the_cache() {
         .collect();
     assert_eq!(bad.len(), 1);
     assert!(bad[0].0.ends_with("draco.glb"), "{bad:?}");
-    assert!(s["seam_rms_after"].as_f64().unwrap() < s["seam_rms_before"].as_f64().unwrap());
+    let closed = |k: &str| s[k].as_f64().unwrap();
+    assert!(
+        closed("seam_rms_closed_after") < closed("seam_rms_closed_before"),
+        "{s}"
+    );
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("KHR_draco_mesh_compression"), "{err}");
 
@@ -199,5 +203,99 @@ fn without_keep_going_a_batch_stops_at_the_first_failure() {
     );
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert!(out.join("cube_gradient_128/report.json").is_file());
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The mean over a report's textures of `pick`, as the summary takes it.
+fn mean_over_textures(report: &Value, pick: impl Fn(&Value) -> Option<f64>) -> f64 {
+    let textures = report["textures"].as_array().unwrap();
+    let v: Vec<f64> = textures.iter().filter_map(pick).collect();
+    assert!(!v.is_empty(), "no texture has the figure");
+    v.iter().sum::<f64>() / v.len() as f64
+}
+
+#[test]
+fn the_summary_headlines_the_closed_seams_as_the_report_has_them() {
+    let dir = scratch("headline");
+    let out = dir.join("out");
+    let sum = dir.join("summary.json");
+    let o = process(
+        &[&shared().join("CesiumMan")],
+        &[
+            "--out",
+            out.to_str().unwrap(),
+            "--summary",
+            sum.to_str().unwrap(),
+        ],
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    let s = summary(&sum);
+    let outcome = &s["outcomes"][0];
+    let report: Value = serde_json::from_slice(
+        &std::fs::read(Path::new(outcome["out"].as_str().unwrap()).join("report.json")).unwrap(),
+    )
+    .unwrap();
+    let before = mean_over_textures(&report, |t| t["input"]["seam_rms_closed"].as_f64());
+    let after = mean_over_textures(&report, |t| t["bc1_seam_aware"]["seam_rms_closed"].as_f64());
+    let edges = |which: &str| {
+        report["textures"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|t| t["seams"][which]["edges"].as_u64().unwrap())
+            .sum::<u64>()
+    };
+    assert!(edges("left") > 0, "CesiumMan leaves seams as painted");
+    for figures in [&s, outcome] {
+        assert_eq!(
+            figures["seam_rms_closed_before"].as_f64(),
+            Some(before),
+            "{s}"
+        );
+        assert_eq!(
+            figures["seam_rms_closed_after"].as_f64(),
+            Some(after),
+            "{s}"
+        );
+        assert_eq!(
+            figures["seams_closed"].as_u64(),
+            Some(edges("closed")),
+            "{s}"
+        );
+        assert_eq!(figures["seams_left"].as_u64(), Some(edges("left")), "{s}");
+        assert!(figures["seam_rms_all_seams_before"].is_f64(), "{s}");
+        assert!(figures["seam_rms_all_seams_after"].is_f64(), "{s}");
+        for old in ["seam_rms_before", "seam_rms_after"] {
+            assert!(figures.get(old).is_none(), "{old} is still written: {s}");
+        }
+    }
+    assert!(after < before, "{before} → {after}");
+
+    // Printed: the counts, then the closed seams first, with the report's
+    // figures, then those over all seams under their own name.
+    let textures = report["textures"].as_array().unwrap().len();
+    let lines: Vec<&str> = err.lines().collect();
+    let counts = lines
+        .iter()
+        .position(|l| l.starts_with("1 model: 1 processed"))
+        .unwrap_or_else(|| panic!("no counts line: {err}"));
+    let texture_count = if textures == 1 {
+        "1 texture,".to_string()
+    } else {
+        format!("{textures} textures,")
+    };
+    assert!(lines[counts].contains(&texture_count), "{err}");
+    let headline = format!(
+        "seam_rms over the closed seams: {before:.3} → {after:.3} (1 model; {} seams closed, {} left as painted)",
+        edges("closed"),
+        edges("left")
+    );
+    assert_eq!(lines.get(counts + 1), Some(&headline.as_str()), "{err}");
+    let all = lines.get(counts + 2).copied().unwrap_or_default();
+    assert!(
+        all.starts_with("seam_rms over all seams, those left as painted included: "),
+        "{err}"
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }

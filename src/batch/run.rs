@@ -243,8 +243,7 @@ fn one(
         status,
         error,
         textures: 0,
-        seam_rms_before: None,
-        seam_rms_after: None,
+        seams: Default::default(),
         seconds: t.elapsed().as_secs_f64(),
     };
     let failed = |e: RunError| match e {

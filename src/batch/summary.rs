@@ -15,11 +15,75 @@ pub struct ModelOutcome {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub error: Option<String>,
     pub textures: usize,
-    /// Mean over its textures of `seam_rms` of the input and of what the
-    /// outputs hold (the DDS, or the erased PNG without one).
-    pub seam_rms_before: Option<f64>,
-    pub seam_rms_after: Option<f64>,
+    #[serde(flatten)]
+    pub seams: SeamFigures,
     pub seconds: f64,
+}
+
+/// What became of the seams: of a model (means over its textures), or of
+/// a batch (means over its models). The closed seams come first: they are
+/// what a run sets out to fix, while the figures over all seams include
+/// those left as painted on purpose, which can rise where the encoding
+/// moves a painted edge.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct SeamFigures {
+    /// Seam edges closed, and left as painted, over the textures.
+    pub seams_closed: usize,
+    pub seams_left: usize,
+    /// The report's `seam_rms_closed` of the input, and of what the
+    /// outputs hold (the DDS, or the erased PNG without one).
+    pub seam_rms_closed_before: Option<f64>,
+    pub seam_rms_closed_after: Option<f64>,
+    /// The report's `seam_rms`, over every seam, the same way.
+    pub seam_rms_all_seams_before: Option<f64>,
+    pub seam_rms_all_seams_after: Option<f64>,
+}
+
+/// The mean of the values present, `None` without any.
+fn mean(values: impl Iterator<Item = Option<f64>>) -> Option<f64> {
+    let v: Vec<f64> = values.flatten().collect();
+    (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+}
+
+impl SeamFigures {
+    /// The figures of a report's textures.
+    fn of_textures(textures: &[serde_json::Value]) -> SeamFigures {
+        let edges = |which: &str| {
+            let count = |t: &serde_json::Value| t["seams"][which]["edges"].as_u64();
+            textures.iter().filter_map(count).sum::<u64>() as usize
+        };
+        // What a renderer samples: the DDS when there is one, else the PNG.
+        let held = |t: &serde_json::Value, key: &str| {
+            t["bc1_seam_aware"][key]
+                .as_f64()
+                .or_else(|| t["bc1"][key].as_f64())
+                .or_else(|| t["erased"][key].as_f64())
+        };
+        let input = |key: &str| mean(textures.iter().map(|t| t["input"][key].as_f64()));
+        let output = |key: &str| mean(textures.iter().map(|t| held(t, key)));
+        SeamFigures {
+            seams_closed: edges("closed"),
+            seams_left: edges("left"),
+            seam_rms_closed_before: input("seam_rms_closed"),
+            seam_rms_closed_after: output("seam_rms_closed"),
+            seam_rms_all_seams_before: input("seam_rms"),
+            seam_rms_all_seams_after: output("seam_rms"),
+        }
+    }
+
+    /// The figures of a batch's models.
+    fn of_models(outcomes: &[ModelOutcome]) -> SeamFigures {
+        let over =
+            |pick: fn(&SeamFigures) -> Option<f64>| mean(outcomes.iter().map(|o| pick(&o.seams)));
+        SeamFigures {
+            seams_closed: outcomes.iter().map(|o| o.seams.seams_closed).sum(),
+            seams_left: outcomes.iter().map(|o| o.seams.seams_left).sum(),
+            seam_rms_closed_before: over(|s| s.seam_rms_closed_before),
+            seam_rms_closed_after: over(|s| s.seam_rms_closed_after),
+            seam_rms_all_seams_before: over(|s| s.seam_rms_all_seams_before),
+            seam_rms_all_seams_after: over(|s| s.seam_rms_all_seams_after),
+        }
+    }
 }
 
 impl ModelOutcome {
@@ -30,17 +94,7 @@ impl ModelOutcome {
         };
         let textures = r["textures"].as_array().cloned().unwrap_or_default();
         self.textures = textures.len();
-        let mean = |pick: &dyn Fn(&serde_json::Value) -> Option<f64>| {
-            let v: Vec<f64> = textures.iter().filter_map(pick).collect();
-            (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
-        };
-        self.seam_rms_before = mean(&|t| t["input"]["seam_rms"].as_f64());
-        self.seam_rms_after = mean(&|t| {
-            t["bc1_seam_aware"]["seam_rms"]
-                .as_f64()
-                .or_else(|| t["bc1"]["seam_rms"].as_f64())
-                .or_else(|| t["erased"]["seam_rms"].as_f64())
-        });
+        self.seams = SeamFigures::of_textures(&textures);
         self
     }
 }
@@ -56,8 +110,10 @@ pub struct Summary {
     /// Models not started because an earlier one failed (no `--keep-going`).
     pub not_run: usize,
     pub textures: usize,
-    pub seam_rms_before: Option<f64>,
-    pub seam_rms_after: Option<f64>,
+    /// Means over the models that have each figure; the seam counts are
+    /// sums.
+    #[serde(flatten)]
+    pub seams: SeamFigures,
     pub seconds: f64,
     pub outcomes: Vec<ModelOutcome>,
 }
@@ -65,10 +121,6 @@ pub struct Summary {
 impl Summary {
     pub fn new(outcomes: Vec<ModelOutcome>, total: usize, seconds: f64) -> Summary {
         let count = |s: &str| outcomes.iter().filter(|o| o.status == s).count();
-        let mean = |pick: fn(&ModelOutcome) -> Option<f64>| {
-            let v: Vec<f64> = outcomes.iter().filter_map(pick).collect();
-            (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
-        };
         Summary {
             models: total,
             processed: count("processed"),
@@ -77,18 +129,18 @@ impl Summary {
             failed: count("failed"),
             not_run: total - outcomes.len(),
             textures: outcomes.iter().map(|o| o.textures).sum(),
-            seam_rms_before: mean(|o| o.seam_rms_before),
-            seam_rms_after: mean(|o| o.seam_rms_after),
+            seams: SeamFigures::of_models(&outcomes),
             seconds,
             outcomes,
         }
     }
 
-    /// The lines a person reads at the end of a batch.
+    /// The lines a person reads at the end of a batch: the counts, then
+    /// the closed seams before and after, then the figures over all seams.
     pub fn text(&self) -> String {
         let mut s = format!(
-            "{} models: {} processed, {} from the cache, {} bad input, {} failed{} — {} textures, {:.1} s\n",
-            self.models,
+            "{}: {} processed, {} from the cache, {} bad input, {} failed{} — {}, {:.1} s\n",
+            count(self.models, "model"),
             self.processed,
             self.cached,
             self.bad_input,
@@ -98,14 +150,10 @@ impl Summary {
             } else {
                 String::new()
             },
-            self.textures,
+            count(self.textures, "texture"),
             self.seconds
         );
-        if let (Some(b), Some(a)) = (self.seam_rms_before, self.seam_rms_after) {
-            s.push_str(&format!(
-                "seam_rms (mean over models): {b:.3} before, {a:.3} after\n"
-            ));
-        }
+        s.push_str(&self.seam_lines());
         for o in &self.outcomes {
             let Some(e) = &o.error else { continue };
             // Most messages name the model already.
@@ -116,5 +164,51 @@ impl Summary {
             }
         }
         s
+    }
+
+    /// `seam_rms over the closed seams: 7.220 → 0.390 (1 model; 1234
+    /// seams closed, 56 left as painted)`, then the same over all seams.
+    fn seam_lines(&self) -> String {
+        let f = &self.seams;
+        let mut s = String::new();
+        if let (Some(b), Some(a)) = (f.seam_rms_closed_before, f.seam_rms_closed_after) {
+            let models = self
+                .outcomes
+                .iter()
+                .filter(|o| o.seams.seam_rms_closed_after.is_some())
+                .count();
+            let over = if models == 1 {
+                "1 model".to_string()
+            } else {
+                format!("mean over {models} models")
+            };
+            s.push_str(&format!(
+                "seam_rms over the closed seams: {b:.3} → {a:.3} ({over}; {} closed, {} left as painted)\n",
+                count(f.seams_closed, "seam"),
+                f.seams_left
+            ));
+        } else if f.seams_closed + f.seams_left > 0 {
+            s.push_str(&format!(
+                "no seam closed: {} left as painted\n",
+                count(f.seams_left, "seam")
+            ));
+        }
+        if let (Some(b), Some(a)) = (f.seam_rms_all_seams_before, f.seam_rms_all_seams_after) {
+            if f.seams_left > 0 {
+                s.push_str(&format!(
+                    "seam_rms over all seams, those left as painted included: {b:.3} → {a:.3}\n"
+                ));
+            }
+        }
+        s
+    }
+}
+
+/// `n` and the noun, plural unless `n` is 1.
+fn count(n: usize, noun: &str) -> String {
+    if n == 1 {
+        format!("1 {noun}")
+    } else {
+        format!("{n} {noun}s")
     }
 }
