@@ -16,6 +16,7 @@ pub mod mips;
 pub mod model;
 pub mod picture;
 pub mod pipeline;
+pub mod plural;
 pub mod resize;
 pub mod seam;
 pub mod service;

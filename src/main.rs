@@ -8,7 +8,7 @@ use std::process::ExitCode;
 use anyhow::Context;
 use clap::{Parser, Subcommand};
 
-use seamstress::batch::run::{run_model, BatchOptions, ModelFiles, RunError, Runner};
+use seamstress::batch::run::{run_model, BatchOptions, ModelFiles, RunError, Runner, Written};
 use seamstress::batch::{self, BatchModel};
 use seamstress::bc1::Level;
 use seamstress::budget::{self, Limits};
@@ -19,6 +19,7 @@ use seamstress::pipeline::{
     self, AlphaOption, Format, JobSettings, Method, NoSink, ProcessOptions, Resize, Target,
     DEFAULT_SEAM_TOLERANCE, DEFAULT_SEAM_WEIGHT,
 };
+use seamstress::plural::count;
 use seamstress::seam::erase::Mode;
 
 #[derive(Parser)]
@@ -27,13 +28,18 @@ use seamstress::seam::erase::Mode;
     version,
     about = "Seam erasure for glTF textures",
     after_help = "Logs go to standard error: warnings and errors for `process`, each request \
-                  and job for `serve`. SEAMSTRESS_LOG sets what is logged (e.g. \
-                  SEAMSTRESS_LOG=debug, or seamstress=debug,tower_http=info)."
+                  and job for `serve`; -v and -vv log more. SEAMSTRESS_LOG sets what is \
+                  logged (e.g. SEAMSTRESS_LOG=debug, or seamstress=debug,tower_http=info); \
+                  -v raises its overall level."
 )]
 struct Cli {
     /// Log format on standard error.
     #[arg(long, global = true, value_enum, default_value = "text")]
     log_format: LogFormat,
+    /// Log more on standard error: -v one level more (info for `process`),
+    /// -vv two (debug).
+    #[arg(short, long, global = true, action = clap::ArgAction::Count)]
+    verbose: u8,
     #[command(subcommand)]
     command: Command,
 }
@@ -76,7 +82,7 @@ struct BatchArgs {
     #[arg(required = true, value_name = "INPUT")]
     inputs: Vec<PathBuf>,
     /// Folder for the outputs (created if missing).
-    #[arg(long)]
+    #[arg(short, long)]
     out: PathBuf,
     /// Models processed at once (a batch; for submit, jobs in flight).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..))]
@@ -91,6 +97,34 @@ struct BatchArgs {
     /// Also write the batch's summary as JSON into this file.
     #[arg(long, value_name = "FILE")]
     summary: Option<PathBuf>,
+    /// Print JSON on standard output instead of the summary for a person:
+    /// one model's report (as report.json holds it), or a batch's summary.
+    #[arg(long, conflicts_with = "quiet")]
+    json: bool,
+    /// Print nothing but errors.
+    #[arg(short, long)]
+    quiet: bool,
+}
+
+/// What `process` and `submit` print besides errors.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Output {
+    /// For a person: a few lines per model, or a batch's summary.
+    Summary,
+    /// The report, or the batch's summary, as JSON on standard output.
+    Json,
+    /// Errors only.
+    Quiet,
+}
+
+impl BatchArgs {
+    fn output(&self) -> Output {
+        match (self.json, self.quiet) {
+            (true, _) => Output::Json,
+            (_, true) => Output::Quiet,
+            _ => Output::Summary,
+        }
+    }
 }
 
 #[derive(clap::Args)]
@@ -230,13 +264,11 @@ struct SubmitArgs {
 fn main() -> ExitCode {
     seamstress::heap::retain_freed_memory();
     let cli = Cli::parse();
-    // A one-shot command stays quiet; a service logs every request and job.
-    let default_level = match cli.command {
-        Command::Process(_) | Command::Submit(_) | Command::RunJob { .. } => "warn",
-        Command::Serve(_) | Command::Worker(_) => "info",
-    };
     let format = cli.log_format;
-    init_logging(format, default_level);
+    init_logging(
+        format,
+        &log_filter(&cli, std::env::var("SEAMSTRESS_LOG").ok()),
+    );
     match cli.command {
         Command::Process(args) => match process(&args) {
             Ok(()) => ExitCode::SUCCESS,
@@ -279,9 +311,55 @@ fn word<T: serde::de::DeserializeOwned>(s: &str) -> Result<T, String> {
     serde_json::from_value(serde_json::Value::String(s.to_string())).map_err(|e| e.to_string())
 }
 
-fn init_logging(format: LogFormat, default_level: &str) {
-    let filter = tracing_subscriber::EnvFilter::try_from_env("SEAMSTRESS_LOG")
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default_level));
+/// Log levels from quietest to loudest.
+const LEVELS: [&str; 5] = ["error", "warn", "info", "debug", "trace"];
+
+/// The log filter: the command's level (a one-shot command warns, a service
+/// logs every request and job), raised by -v and lowered to errors by -q,
+/// with SEAMSTRESS_LOG's directives. Without a flag, SEAMSTRESS_LOG alone
+/// decides when set; with one, the louder of its overall level and the
+/// flag's holds, and its per-target directives stay.
+fn log_filter(cli: &Cli, env: Option<String>) -> String {
+    let (default, quiet) = match &cli.command {
+        Command::Process(a) => (1, a.batch.quiet),
+        Command::Submit(a) => (1, a.batch.quiet),
+        Command::RunJob { .. } => (1, false),
+        Command::Serve(_) | Command::Worker(_) => (2, false),
+    };
+    // As before the flags: a SEAMSTRESS_LOG that does not parse is ignored.
+    let env =
+        env.filter(|e| !e.trim().is_empty() && tracing_subscriber::EnvFilter::try_new(e).is_ok());
+    if cli.verbose == 0 && !quiet {
+        if let Some(env) = env {
+            return env;
+        }
+    }
+    let flag = if quiet {
+        0
+    } else {
+        (default + usize::from(cli.verbose)).min(LEVELS.len() - 1)
+    };
+    let mut overall = flag;
+    let mut targeted = Vec::new();
+    for directive in env.iter().flat_map(|e| e.split(',')).map(str::trim) {
+        match LEVELS
+            .iter()
+            .position(|l| directive.eq_ignore_ascii_case(l))
+        {
+            Some(level) if !quiet => overall = overall.max(level),
+            Some(_) => {}
+            None if !directive.is_empty() => targeted.push(directive),
+            None => {}
+        }
+    }
+    std::iter::once(LEVELS[overall])
+        .chain(targeted)
+        .collect::<Vec<_>>()
+        .join(",")
+}
+
+fn init_logging(format: LogFormat, filter: &str) {
+    let filter = tracing_subscriber::EnvFilter::new(filter);
     // Colours only for a person at a terminal, never into files or pipes.
     let ansi = std::io::IsTerminal::is_terminal(&std::io::stderr());
     let builder = tracing_subscriber::fmt()
@@ -347,13 +425,28 @@ fn process(args: &ProcessArgs) -> Result<(), Failure> {
         [one] if one.out.as_os_str().is_empty() => {
             let model = ModelFiles::read(&one.path)?;
             let written = run_model(&model, &one.path, &args.batch.out, &settings, &mut NoSink)?;
-            std::io::stdout()
-                .write_all(&written.report)
-                .context("cannot write to standard output")?;
-            Ok(())
+            print_model(&written, &args.batch)
         }
         _ => run_batch(&args.batch, &models, &settings),
     }
+}
+
+/// One model's outcome on standard output, as `--json` and `-q` ask.
+fn print_model(written: &Written, args: &BatchArgs) -> Result<(), Failure> {
+    let text = match args.output() {
+        Output::Quiet => return Ok(()),
+        Output::Json => written.report.clone(),
+        Output::Summary => {
+            let names: Vec<String> = written.files.iter().map(|(n, _)| n.clone()).collect();
+            pipeline::summary::model_summary(&written.report, &args.out, &names)
+                .context("the report cannot be summarised")?
+                .into_bytes()
+        }
+    };
+    std::io::stdout()
+        .write_all(&text)
+        .context("cannot write to standard output")?;
+    Ok(())
 }
 
 fn submit(args: &SubmitArgs) -> Result<(), Failure> {
@@ -390,49 +483,75 @@ fn run_batch(args: &BatchArgs, models: &[BatchModel], runner: &dyn Runner) -> Re
         keep_going: args.keep_going,
         force: args.force,
     };
-    let progress = BatchProgress::new(models.len());
+    let output = args.output();
+    let progress = BatchProgress::new(models.len(), output == Output::Quiet);
     let summary = batch::run::run_batch(models, runner, &opts, &progress);
     progress.bar.finish_and_clear();
-    eprint!("{}", summary.text());
+    let json = serde_json::to_vec_pretty(&summary).context("summary")?;
+    match output {
+        Output::Quiet => eprint!("{}", error_lines(&summary)),
+        Output::Summary => eprint!("{}", summary.text()),
+        Output::Json => {
+            eprint!("{}", summary.text());
+            let mut out = std::io::stdout();
+            out.write_all(&json)
+                .and_then(|()| out.write_all(b"\n"))
+                .context("cannot write to standard output")?;
+        }
+    }
     if let Some(path) = &args.summary {
-        let json = serde_json::to_vec_pretty(&summary).context("summary")?;
         std::fs::write(path, json)
             .with_context(|| format!("cannot write the summary to {}", path.display()))?;
     }
+    let of_models = |n: usize| format!("{n} of {}", count(summary.models, "model"));
     if summary.failed > 0 {
         return Err(Failure::Internal(anyhow::anyhow!(
-            "{} of {} models failed",
-            summary.failed,
-            summary.models
+            "{} failed",
+            of_models(summary.failed)
         )));
     }
     if summary.bad_input > 0 {
+        let verb = if summary.bad_input == 1 { "is" } else { "are" };
         return Err(Failure::BadInput(format!(
-            "{} of {} models are bad input",
-            summary.bad_input, summary.models
+            "{} {verb} bad input",
+            of_models(summary.bad_input)
         )));
     }
     Ok(())
+}
+
+/// The models that did not succeed, a line each: all `-q` prints of a batch.
+fn error_lines(summary: &batch::Summary) -> String {
+    let mut lines = String::new();
+    for o in &summary.outcomes {
+        if let Some(e) = &o.error {
+            lines.push_str(&format!("{} {}: {e}\n", o.status, o.model));
+        }
+    }
+    lines
 }
 
 /// A batch's progress: a bar with models done, the current stage and the
 /// ETA when standard error is a terminal, a line per model otherwise.
 struct BatchProgress {
     bar: indicatif::ProgressBar,
-    terminal: bool,
+    /// A line per finished model (standard error is no terminal).
+    lines: bool,
     total: usize,
     done: std::sync::atomic::AtomicUsize,
 }
 
 impl BatchProgress {
-    fn new(total: usize) -> Self {
+    /// `quiet`: neither bar nor lines.
+    fn new(total: usize, quiet: bool) -> Self {
         let terminal = std::io::IsTerminal::is_terminal(&std::io::stderr());
-        let bar = if terminal {
+        let bar = if terminal && !quiet {
             let bar = indicatif::ProgressBar::new(total as u64);
+            let noun = if total == 1 { "model" } else { "models" };
             bar.set_style(
-                indicatif::ProgressStyle::with_template(
-                    "{bar:30} {pos}/{len} models, ETA {eta} {wide_msg}",
-                )
+                indicatif::ProgressStyle::with_template(&format!(
+                    "{{bar:30}} {{pos}}/{{len}} {noun}, ETA {{eta}} {{wide_msg}}"
+                ))
                 .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
             );
             bar
@@ -441,7 +560,7 @@ impl BatchProgress {
         };
         BatchProgress {
             bar,
-            terminal,
+            lines: !terminal && !quiet,
             total,
             done: std::sync::atomic::AtomicUsize::new(0),
         }
@@ -464,7 +583,7 @@ impl batch::run::Observer for BatchProgress {
 
     fn finished(&self, _: usize, outcome: &batch::ModelOutcome) {
         self.bar.inc(1);
-        if !self.terminal {
+        if self.lines {
             let n = self.done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
             eprintln!(
                 "[{n}/{}] {} {} ({:.1} s)",
@@ -485,6 +604,31 @@ mod tests {
             unreachable!("parsed as process")
         };
         assert_eq!(args.options.options(), ProcessOptions::default());
+    }
+
+    #[test]
+    fn flags_raise_and_lower_the_log_level_over_seamstress_log() {
+        let filter = |argv: &[&str], env: Option<&str>| {
+            let cli = Cli::try_parse_from(argv).unwrap();
+            log_filter(&cli, env.map(str::to_string))
+        };
+        let process = ["seamstress", "process", "m.glb", "-o", "o"];
+        fn with<'a>(flags: &[&'a str]) -> Vec<&'a str> {
+            [&["seamstress", "process", "m.glb", "-o", "o"][..], flags].concat()
+        }
+        assert_eq!(filter(&process, None), "warn");
+        assert_eq!(filter(&with(&["-v"]), None), "info");
+        assert_eq!(filter(&with(&["-vv"]), None), "debug");
+        assert_eq!(filter(&with(&["-q"]), None), "error");
+        assert_eq!(filter(&["seamstress", "-v", "serve"], None), "debug");
+        // SEAMSTRESS_LOG alone decides without a flag; -v raises its
+        // overall level and keeps its targets; one that does not parse is
+        // ignored, as it always was.
+        let env = Some("tower_http=debug,error");
+        assert_eq!(filter(&process, env), "tower_http=debug,error");
+        assert_eq!(filter(&with(&["-v"]), env), "info,tower_http=debug");
+        assert_eq!(filter(&with(&["-v"]), Some("trace")), "trace");
+        assert_eq!(filter(&process, Some("=nonsense=")), "warn");
     }
 
     #[test]

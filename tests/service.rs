@@ -1437,3 +1437,45 @@ async fn downloads_resume_with_byte_ranges() {
         assert!(r.bytes().await.unwrap() == whole);
     }
 }
+
+/// A body whose bytes are not what its Content-Type declares is refused
+/// for that, not for what the other parser makes of it (a `.gltf` read as
+/// GLB misses its `.bin`); a file of another format is named.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_body_unlike_its_content_type_is_named() {
+    let data = scratch("mislabelled");
+    let s = Server::start(&data, &[]);
+    let c = client();
+    let post = |ct: &'static str, body: Vec<u8>| {
+        c.post(s.url("/v1/jobs?name=BoxTextured.gltf"))
+            .header("content-type", ct)
+            .body(body)
+            .send()
+    };
+    let gltf =
+        std::fs::read(assets().join("BoxTextured/BoxTextured-glTF/BoxTextured.gltf")).unwrap();
+    let (status, err) = json_of(post("model/gltf-binary", gltf).await.unwrap()).await;
+    assert_eq!(status, StatusCode::UNSUPPORTED_MEDIA_TYPE, "{err}");
+    let message = err["message"].as_str().unwrap();
+    assert!(
+        message.contains("the body is glTF JSON, not GLB"),
+        "{message}"
+    );
+    let glb = std::fs::read(assets().join("BoxTextured/BoxTextured-glTF-Binary/BoxTextured.glb"))
+        .unwrap();
+    let (status, err) = json_of(post("model/gltf+json", glb).await.unwrap()).await;
+    assert_eq!(status, StatusCode::UNSUPPORTED_MEDIA_TYPE, "{err}");
+    let message = err["message"].as_str().unwrap();
+    assert!(
+        message.contains("the body is GLB, not glTF JSON"),
+        "{message}"
+    );
+    let obj = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n".to_vec();
+    let (status, err) = json_of(submit_raw(&c, &s, obj, "tiny.glb", "").await).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{err}");
+    let message = err["message"].as_str().unwrap();
+    assert!(
+        message.contains("tiny.glb: a Wavefront OBJ file, not glTF"),
+        "{message}"
+    );
+}

@@ -3,6 +3,8 @@
 
 use serde::Serialize;
 
+use crate::plural::count;
+
 /// One model's result.
 #[derive(Clone, Debug, Serialize)]
 pub struct ModelOutcome {
@@ -201,14 +203,5 @@ impl Summary {
             }
         }
         s
-    }
-}
-
-/// `n` and the noun, plural unless `n` is 1.
-fn count(n: usize, noun: &str) -> String {
-    if n == 1 {
-        format!("1 {noun}")
-    } else {
-        format!("{n} {noun}s")
     }
 }

@@ -19,6 +19,7 @@ use gltf::json::mesh::{Mode, Semantic};
 use gltf::json::validation::Checked;
 
 use super::image::{ImageHeader, Texture, TextureError};
+use super::sniff::Foreign;
 use super::{AlphaUse, Model, Skipped, TextureBinding, UvTriangle, Wrap};
 
 /// What to load and how much to trust.
@@ -98,6 +99,9 @@ pub enum LoadErrorKind {
     /// The container or JSON cannot be parsed, or fails the glTF schema.
     #[error("{0}")]
     Malformed(String),
+    /// Not glTF at all: another format, named, or nothing recognised.
+    #[error("{0}")]
+    NotGltf(Foreign),
     #[error("required extension {0} is not supported")]
     UnsupportedExtension(String),
     /// Parsed, but the data is inconsistent: ranges, indices, counts,
@@ -402,6 +406,9 @@ fn read_u32(b: &[u8], at: usize) -> Option<u32> {
 }
 
 fn split_container(bytes: &[u8]) -> Result<Container<'_>, LoadErrorKind> {
+    if let Some(foreign) = Foreign::sniff(bytes) {
+        return Err(LoadErrorKind::NotGltf(foreign));
+    }
     if !bytes.starts_with(b"glTF") {
         let json = bytes.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(bytes);
         return Ok(Container { json, bin: None });

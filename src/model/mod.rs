@@ -9,6 +9,7 @@ pub mod image;
 pub mod load;
 pub mod rewrite;
 pub mod seams;
+pub mod sniff;
 
 pub use self::image::{ImageHeader, Texture, TextureEncoding, TextureError};
 pub use load::{

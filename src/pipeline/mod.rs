@@ -14,6 +14,7 @@ mod level;
 mod measure;
 pub mod options;
 mod progress;
+pub mod summary;
 mod texture;
 
 pub use alpha::{AlphaFormat, AlphaOption, AlphaReport};

@@ -26,7 +26,7 @@ use super::error::{self, ApiError};
 use super::health::Dependency;
 use super::job::{self, is_job_id, now_ms, random_id, InputInfo, Job, JobState, Progress};
 use super::store::{keys, StoreError, Submitted};
-use super::upload::{base_name, safe_name, Bundle};
+use super::upload::{base_name, check_media_type, safe_name, Bundle};
 use crate::budget::Limits;
 use crate::pipeline::{JobError, OptionPatch, ProcessOptions};
 
@@ -339,6 +339,13 @@ async fn read_upload(
         "model/gltf-binary" | "application/octet-stream" | "model/gltf+json" => {
             let glb = media != "model/gltf+json";
             let main = read_body(req.into_body(), limit).await?;
+            check_media_type(&media, &main).map_err(|m| {
+                ApiError::new(
+                    StatusCode::UNSUPPORTED_MEDIA_TYPE,
+                    "unsupported_media_type",
+                    m,
+                )
+            })?;
             let default = if glb { "model.glb" } else { "model.gltf" };
             let main_name = match name {
                 Some(n) => base_name(&n).to_string(),

@@ -285,7 +285,16 @@ pub(super) async fn run_process(
         let _ = writeln!(out, "listening on {local}");
         let _ = out.flush();
     }
-    tracing::info!(addr = %local, workers, process = %app.process, "listening");
+    // A relative default (`./data`) lands wherever the server was started:
+    // the log says where.
+    let data = std::path::absolute(&app.cfg.data).unwrap_or_else(|_| app.cfg.data.clone());
+    tracing::info!(
+        addr = %local,
+        workers,
+        process = %app.process,
+        data = %data.display(),
+        "listening"
+    );
 
     tokio::select! {
         _ = shutdown_signal() => {}

@@ -4,6 +4,7 @@ use std::collections::BTreeMap;
 
 use sha2::{Digest, Sha256};
 
+use crate::model::sniff::Foreign;
 use crate::pipeline::ProcessOptions;
 
 /// A `.glb` or `.gltf` with the files beside it, keyed by the relative
@@ -100,6 +101,24 @@ impl<'a> Cursor<'a> {
     }
 }
 
+/// Checks a raw upload's bytes against its declared media type: a `.gltf`
+/// sent as `model/gltf-binary` would otherwise be refused for what a GLB
+/// parser makes of it (a missing `.bin`, say), not for its label.
+/// `application/octet-stream` declares neither and takes both.
+pub fn check_media_type(media: &str, body: &[u8]) -> Result<(), String> {
+    let glb = body.starts_with(b"glTF");
+    let json = !glb && Foreign::sniff(body).is_none();
+    match media {
+        "model/gltf-binary" if json => {
+            Err("the body is glTF JSON, not GLB: send it as model/gltf+json".into())
+        }
+        "model/gltf+json" if glb => {
+            Err("the body is GLB, not glTF JSON: send it as model/gltf-binary".into())
+        }
+        _ => Ok(()),
+    }
+}
+
 /// A file name from a client, as a relative `/`-separated path that cannot
 /// leave the upload: no empty, `.` or `..` parts, no backslashes, colons or
 /// control characters, at most 255 bytes.
@@ -142,6 +161,21 @@ mod tests {
         assert_eq!(Bundle::decode(&bytes).unwrap(), b);
         assert!(Bundle::decode(&bytes[..bytes.len() - 1]).is_err());
         assert!(Bundle::decode(b"nonsense").is_err());
+    }
+
+    #[test]
+    fn media_types_must_fit_the_bytes() {
+        let json = b" {\"asset\":{\"version\":\"2.0\"}}";
+        let glb = b"glTF\x02\0\0\0";
+        let err = check_media_type("model/gltf-binary", json).unwrap_err();
+        assert!(err.contains("glTF JSON, not GLB"), "{err}");
+        let err = check_media_type("model/gltf+json", glb).unwrap_err();
+        assert!(err.contains("GLB, not glTF JSON"), "{err}");
+        assert!(check_media_type("model/gltf-binary", glb).is_ok());
+        assert!(check_media_type("model/gltf+json", json).is_ok());
+        assert!(check_media_type("application/octet-stream", json).is_ok());
+        // Neither: the loader names what it is.
+        assert!(check_media_type("model/gltf-binary", b"v 0 0 0\nf 1 1 1\n").is_ok());
     }
 
     #[test]
