@@ -165,7 +165,7 @@ fn a_batch_survives_a_killed_server_runs_each_model_once_and_matches_process() {
 }
 
 #[test]
-fn a_wrong_token_fails_with_status_1_and_the_right_one_succeeds() {
+fn a_wrong_token_fails_with_status_2_and_the_right_one_succeeds() {
     let dir = scratch("refused");
     let model = common::shared_assets().join("cube/cube_gradient_128.glb");
     let data = dir.join("data");
@@ -174,8 +174,12 @@ fn a_wrong_token_fails_with_status_1_and_the_right_one_succeeds() {
     let mut c = seamstress("submit", &model, &out, &["--server", &server.base]);
     c.env("SEAMSTRESS_TOKEN", "wrong");
     let o = c.output().unwrap();
-    assert_eq!(o.status.code(), Some(1));
-    assert!(String::from_utf8_lossy(&o.stderr).contains("401"));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("401") && err.contains("SEAMSTRESS_TOKEN"),
+        "{err}"
+    );
     let mut c = seamstress("submit", &model, &out, &["--server", &server.base]);
     c.env("SEAMSTRESS_TOKEN", "right");
     let o = c.output().unwrap();

@@ -314,10 +314,16 @@ fn query_options(options: &ProcessOptions) -> Vec<(String, String)> {
 
 fn request_failed(name: &str, what: &str, e: RequestError) -> RunError {
     match e {
+        // A token the server does not take: no retry can succeed, and the
+        // fix is the caller's, as for a bad model.
+        RequestError::Status { status, body } if status == reqwest::StatusCode::UNAUTHORIZED => {
+            RunError::BadInput(format!(
+                "{name}: {what}: {status}: {} (check --token or SEAMSTRESS_TOKEN)",
+                message(&body)
+            ))
+        }
         // The server refused the upload itself: the input is at fault.
-        RequestError::Status { status, body }
-            if status.is_client_error() && status != reqwest::StatusCode::UNAUTHORIZED =>
-        {
+        RequestError::Status { status, body } if status.is_client_error() => {
             RunError::BadInput(format!("{name}: {what}: {status}: {}", message(&body)))
         }
         RequestError::Status { status, body } => {
