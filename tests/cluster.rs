@@ -6,7 +6,6 @@
 //! byte for byte what `seamstress process` writes.
 
 use std::collections::{BTreeMap, BTreeSet};
-use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
@@ -48,15 +47,7 @@ impl Node {
             .stderr(Stdio::null())
             .spawn()
             .expect("seamstress starts");
-        let mut line = String::new();
-        BufReader::new(child.stdout.take().unwrap())
-            .read_line(&mut line)
-            .unwrap();
-        let addr = line
-            .trim()
-            .strip_prefix("listening on ")
-            .unwrap_or_else(|| panic!("{argv:?}: unexpected first line {line:?}"))
-            .to_string();
+        let addr = common::server::address_of(&mut child);
         Node {
             child,
             base: format!("http://{addr}"),

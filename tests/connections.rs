@@ -2,12 +2,14 @@
 //! a request, kept-alive connections that go quiet, and more connections
 //! than the server takes. The real binary, over raw TCP.
 
-use std::io::{self, BufRead, BufReader, Read, Write};
+use std::io::{self, Read, Write};
 use std::net::TcpStream;
 use std::os::unix::process::CommandExt;
 use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
+
+mod common;
 
 /// The server's file descriptor limit in these tests.
 const NOFILE: u64 = 256;
@@ -57,15 +59,7 @@ impl Server {
             });
         }
         let mut child = cmd.spawn().expect("the server starts");
-        let mut line = String::new();
-        BufReader::new(child.stdout.take().unwrap())
-            .read_line(&mut line)
-            .expect("the server prints its address");
-        let addr = line
-            .trim()
-            .strip_prefix("listening on ")
-            .unwrap_or_else(|| panic!("unexpected first line {line:?}"))
-            .to_string();
+        let addr = common::server::address_of(&mut child);
         Server {
             child,
             addr,

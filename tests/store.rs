@@ -309,7 +309,9 @@ fn file_stores_read_ranges_alike_on_s3() {
 }
 
 fn read_ranges(with_s3: bool) {
-    let dir = std::env::temp_dir().join(format!("seamstress-files-{}", std::process::id()));
+    // A folder of each test's own: the two run at once.
+    let dir =
+        std::env::temp_dir().join(format!("seamstress-files-{}-{with_s3}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     let mut stores: Vec<(&str, Box<dyn FileStore>)> =

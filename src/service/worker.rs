@@ -173,47 +173,7 @@ async fn run(app: &Shared, job: Job, worker: &str, thread: &JobThread) {
             execute(&run, job)
         });
         let outcome = within_limit(app, &mut handle, &flag, &waited, &snapshot).await;
-        match outcome {
-            Ok(Ok(Ok(state))) => {
-                tracing::info!(state = state.as_str(), "job ended");
-            }
-            Ok(Ok(Err(e))) if e.is_outage() => {
-                // Whatever the store did not take is done again: the job
-                // goes back to the queue, this run not charged. Should the
-                // store still be away, the lease runs out and whoever finds
-                // it puts the job back the same way.
-                tracing::warn!(error = %e, "job interrupted by an outage; back to the queue");
-                let (store, id, worker) = (app.jobs.clone(), id.clone(), worker.to_string());
-                let _ = tokio::task::spawn_blocking(move || store.requeue(&id, &worker)).await;
-                app.work.notify_one();
-            }
-            Ok(Ok(Err(e))) => {
-                tracing::error!(error = %e, "job store failed during the job");
-                let (task_app, job) = (app.clone(), snapshot);
-                let (code, message) = (e.job_code(), e.to_string());
-                let failed = tokio::task::spawn_blocking(move || {
-                    fail_after(&task_app, job, code, &message, started)
-                })
-                .await;
-                if !matches!(failed, Ok(Ok(_))) {
-                    tracing::error!("cannot record the failure");
-                }
-            }
-            // A bug, not the input's fault: the job fails as any failed job
-            // does, rather than stay running for ever.
-            Ok(Err(_)) | Err(_) => {
-                tracing::error!("job thread panicked");
-                let (task_app, job) = (app.clone(), snapshot);
-                let message = "the engine failed unexpectedly";
-                let failed = tokio::task::spawn_blocking(move || {
-                    fail_after(&task_app, job, "internal", message, started)
-                })
-                .await;
-                if !matches!(failed, Ok(Ok(_))) {
-                    tracing::error!("cannot record the failure");
-                }
-            }
-        }
+        settle(app, outcome, snapshot, worker, started).await;
         heartbeat.abort();
         app.running().remove(&id);
         app.metrics.busy_workers.fetch_sub(1, Ordering::Relaxed);
@@ -221,6 +181,52 @@ async fn run(app: &Shared, job: Job, worker: &str, thread: &JobThread) {
     }
     .instrument(span)
     .await
+}
+
+/// What the job thread's end means for the job: nothing more when it
+/// recorded its own end; back to the queue, uncharged, after an outage;
+/// failed when the store refused it for good or the thread panicked.
+async fn settle(
+    app: &Shared,
+    outcome: Result<std::thread::Result<Result<JobState, StoreError>>, oneshot::error::RecvError>,
+    job: Job,
+    worker: &str,
+    started: Instant,
+) {
+    let (code, message) = match outcome {
+        Ok(Ok(Ok(state))) => {
+            tracing::info!(state = state.as_str(), "job ended");
+            return;
+        }
+        Ok(Ok(Err(e))) if e.is_outage() => {
+            // Whatever the store did not take is done again: the job goes
+            // back to the queue, this run not charged. Should the store
+            // still be away, the lease runs out and whoever finds it puts
+            // the job back the same way.
+            tracing::warn!(error = %e, "job interrupted by an outage; back to the queue");
+            let (store, id, worker) = (app.jobs.clone(), job.id.clone(), worker.to_string());
+            let _ = tokio::task::spawn_blocking(move || store.requeue(&id, &worker)).await;
+            app.work.notify_one();
+            return;
+        }
+        Ok(Ok(Err(e))) => {
+            tracing::error!(error = %e, "job store failed during the job");
+            (e.job_code(), e.to_string())
+        }
+        // A bug, not the input's fault: the job fails as any failed job
+        // does, rather than stay running for ever.
+        Ok(Err(_)) | Err(_) => {
+            tracing::error!("job thread panicked");
+            ("internal", "the engine failed unexpectedly".to_string())
+        }
+    };
+    let task_app = app.clone();
+    let failed =
+        tokio::task::spawn_blocking(move || fail_after(&task_app, job, code, &message, started))
+            .await;
+    if !matches!(failed, Ok(Ok(_))) {
+        tracing::error!("cannot record the failure");
+    }
 }
 
 /// Waits for the job thread, stopping the job at its time limit. Time the

@@ -75,6 +75,19 @@ pub fn cluster_stores(data: &Path) -> (Vec<String>, Vec<(&'static str, String)>)
     (args, shared.s3.env())
 }
 
+/// The address a `serve` or `worker` child prints on its first line
+/// (`listening on ADDR`); its standard output must be piped.
+pub fn address_of(child: &mut Child) -> String {
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().expect("a piped stdout"))
+        .read_line(&mut line)
+        .expect("the server prints its address");
+    line.trim()
+        .strip_prefix("listening on ")
+        .unwrap_or_else(|| panic!("unexpected first line {line:?}"))
+        .to_string()
+}
+
 pub struct Server {
     pub child: Child,
     /// `http://ADDR`, as the server printed it.
@@ -102,15 +115,7 @@ impl Server {
             .stderr(Stdio::null())
             .spawn()
             .expect("the server starts");
-        let mut line = String::new();
-        BufReader::new(child.stdout.take().expect("a piped stdout"))
-            .read_line(&mut line)
-            .expect("the server prints its address");
-        let addr = line
-            .trim()
-            .strip_prefix("listening on ")
-            .unwrap_or_else(|| panic!("unexpected first line {line:?}"))
-            .to_string();
+        let addr = address_of(&mut child);
         Server {
             child,
             base: format!("http://{addr}"),
