@@ -127,6 +127,41 @@ fn from_luminance(rgb: [u8; 3]) -> u8 {
     (64.0 + 0.7 * l).round() as u8
 }
 
+/// Alpha painted apart across the seams, colour agreeing (issue: a decal's
+/// transparency a smooth field over texture space): the seams close for
+/// their colour and force the alpha together. Until seams are judged per
+/// channel that repaints the alpha, and the report must say so, with the
+/// figure, rather than ship it silently.
+#[test]
+fn alpha_repainted_by_closing_seams_is_warned_of() {
+    let dir = scratch("alpha-apart");
+    let model = alpha_duck(&dir, "BLEND", None, |x, _, _| {
+        let phase = std::f64::consts::TAU * 3.0 * f64::from(x) / 512.0;
+        (128.0 + 100.0 * phase.sin()).round() as u8
+    });
+    let out = dir.join("out");
+    let report = process(&model, &out, &[]);
+    let t = &report["textures"][0];
+    let a = &t["alpha"];
+    assert_eq!(a["erased_seams"], true, "{a}");
+    let psnr = f(&a["erased"]["psnr"]);
+    assert!(psnr < 40.0, "alpha kept at {psnr} dB: nothing to warn of");
+    let name = t["name"].as_str().unwrap();
+    let warnings: Vec<&str> = report["warnings"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|w| w.as_str().unwrap())
+        .collect();
+    assert!(
+        warnings.iter().any(|w| w.contains(name)
+            && w.contains("its alpha")
+            && w.contains(&format!("{psnr:.1} dB"))),
+        "{warnings:?}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 #[test]
 fn a_blend_gets_bc3_with_its_alpha_seams_closed() {
     let dir = scratch("blend");

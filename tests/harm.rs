@@ -100,8 +100,14 @@ fn erase_all_repaints_the_fox_chart_and_says_so() {
     assert_eq!(t.seams.left.edges, 0);
     assert_eq!(t.seams.tolerance, None);
     assert!(t.erased.charts_under_30db.unwrap() >= 1, "{:?}", t.erased);
-    assert_eq!(out.report.warnings.len(), 1, "{:?}", out.report.warnings);
-    assert!(out.report.warnings[0].contains(&t.name));
+    // The repainted chart, and the inside texels (38 dB) it drags down.
+    let w = &out.report.warnings;
+    assert!(
+        w.iter()
+            .any(|w| w.contains(&t.name) && w.contains("UV chart(s) under 30 dB")),
+        "{w:?}"
+    );
+    assert!(w.iter().all(|w| w.contains("--erase-all")), "{w:?}");
 }
 
 #[test]
@@ -137,7 +143,19 @@ fn cesium_man_keeps_every_chart_above_30_db() {
         shipped <= before + 0.02,
         "CesiumMan: agreeing seams at {shipped} in the DDS, {before} with every seam closed"
     );
-    assert!(out.report.warnings.is_empty(), "{:?}", out.report.warnings);
+    // Many small corrections of JPEG noise add up to under 40 dB inside the
+    // charts: said, with the figure, and nothing else.
+    let psnr = t.erased.psnr.unwrap();
+    let w = &out.report.warnings;
+    if psnr < 40.0 {
+        assert_eq!(w.len(), 1, "{w:?}");
+        assert!(
+            w[0].contains(&t.name) && w[0].contains(&format!("{psnr:.1} dB")),
+            "{w:?}"
+        );
+    } else {
+        assert!(w.is_empty(), "{w:?}");
+    }
 }
 
 /// Every WaterBottle seam agrees: judging them changes nothing.

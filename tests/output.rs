@@ -63,7 +63,12 @@ fn one_model_prints_its_summary() {
     let share = t["seams"]["closed"]["length_share"].as_f64().unwrap() * 100.0;
     let lines: Vec<&str> = stdout.lines().collect();
     assert_eq!(lines.len(), 3, "{stdout}");
-    assert_eq!(lines[0], "CesiumMan.gltf: 1 texture");
+    let warnings = match r["warnings"].as_array().unwrap().len() {
+        0 => String::new(),
+        1 => ", 1 warning (in report.json)".to_string(),
+        n => format!(", {n} warnings (in report.json)"),
+    };
+    assert_eq!(lines[0], format!("CesiumMan.gltf: 1 texture{warnings}"));
     let expected = format!(
         "  CesiumMan 1024×1024: {closed} of {} seams closed ({share:.0}% of the seam length), \
          {left} left as painted ({:.0}%); seam_rms over the closed seams {before:.2} → {after:.2} \
