@@ -32,6 +32,8 @@ pub(super) struct ErasedLevel {
     /// encoding make agree.
     pub(super) closed: SeamSet,
     pub(super) verdicts: SeamVerdicts,
+    /// Alpha's own verdicts, where they differ from the colour's.
+    pub(super) alpha: Option<AlphaSeams>,
     pub(super) charts: Charts,
     /// Gutter texels filled from their own chart along the seams left open.
     pub(super) padded: usize,
@@ -80,16 +82,29 @@ pub(super) fn erase_level(
     let seams_ms = t.elapsed().as_millis() as u64;
 
     let t = Instant::now();
-    let mut solved = solve(b, &grid, tex, &seams, &verdicts.closed, &charts, opts)?;
-    if !opts.erase_all {
-        // The middle zone closes only where that repaints no chart.
-        let harmed = charts.harmed(&solved.data, &tex.data, tex.channels, compared);
-        let spared = verdicts.spare(&seams, &charts, &harmed);
-        if spared > 0 {
-            tracing::debug!(spared, "seams left to spare their charts");
-            solved = solve(b, &grid, tex, &seams, &verdicts.closed, &charts, opts)?;
-        }
-    }
+    let mut solved = judged_solve(
+        b,
+        &grid,
+        (&tex.data, tex.channels, compared),
+        &seams,
+        &mut verdicts,
+        &charts,
+        opts,
+    )?;
+    let alpha_group = if erase_alpha && !opts.erase_all {
+        alpha_apart(
+            b,
+            &grid,
+            tex,
+            &seams,
+            &verdicts,
+            &charts,
+            opts,
+            &mut solved.data,
+        )?
+    } else {
+        None
+    };
     if !erase_alpha {
         alpha::restore(&mut solved.data, tex);
     }
@@ -107,6 +122,7 @@ pub(super) fn erase_level(
         seams,
         closed: solved.closed,
         verdicts,
+        alpha: alpha_group,
         charts,
         padded: solved.padded,
         classes: solved.classes,
@@ -118,6 +134,104 @@ pub(super) fn erase_level(
     })
 }
 
+/// Alpha judged on its own where its sides are painted apart while the
+/// colour's agree, or the other way round.
+pub(super) struct AlphaSeams {
+    pub(super) verdicts: SeamVerdicts,
+    /// The alpha seams closed, for the alpha figures and the seam-aware
+    /// alpha search.
+    pub(super) closed: SeamSet,
+    pub(super) padded: usize,
+}
+
+/// The solve for `verdicts`, then, unless every seam is to close, the
+/// middle zone's edges whose closing repainted a chart spared and the
+/// solve made again without them. `data` is (texels, channels, channels
+/// compared).
+fn judged_solve(
+    b: &TextureBinding,
+    grid: &TexelGrid,
+    (data, channels, compared): (&[f32], usize, usize),
+    seams: &SeamSet,
+    verdicts: &mut SeamVerdicts,
+    charts: &Charts,
+    opts: &ProcessOptions,
+) -> Result<Solved, PipelineError> {
+    let mut solved = solve(
+        b,
+        grid,
+        data,
+        channels,
+        seams,
+        &verdicts.closed,
+        charts,
+        opts,
+    )?;
+    if !opts.erase_all {
+        // The middle zone closes only where that repaints no chart.
+        let harmed = charts.harmed(&solved.data, data, channels, compared);
+        let spared = verdicts.spare(seams, charts, &harmed);
+        if spared > 0 {
+            tracing::debug!(spared, "seams left to spare their charts");
+            solved = solve(
+                b,
+                grid,
+                data,
+                channels,
+                seams,
+                &verdicts.closed,
+                charts,
+                opts,
+            )?;
+        }
+    }
+    Ok(solved)
+}
+
+/// Judges the alpha of a texture whose alpha is erased by the same rule as
+/// its colour, each side as its own chart paints it. Where the verdicts
+/// differ from the colour's, alpha is solved on its own over its own closed
+/// seams, and written into `solved`; where they agree, the joint solve
+/// already did just that, and `None` says so.
+#[allow(clippy::too_many_arguments)]
+fn alpha_apart(
+    b: &TextureBinding,
+    grid: &TexelGrid,
+    tex: &Texture,
+    seams: &SeamSet,
+    colour: &SeamVerdicts,
+    charts: &Charts,
+    opts: &ProcessOptions,
+    solved: &mut [f32],
+) -> Result<Option<AlphaSeams>, PipelineError> {
+    let Some(plane) = alpha::channel(tex) else {
+        return Ok(None);
+    };
+    let judge = ClassifyOptions {
+        tolerance: opts.seam_tolerance,
+        remove_chart_offsets: opts.mode == Mode::Global,
+    };
+    let mut verdicts = classify(grid, &plane, 1, 1, seams, charts, &judge);
+    if verdicts.closed == colour.closed {
+        return Ok(None);
+    }
+    let alone = judged_solve(b, grid, (&plane, 1, 1), seams, &mut verdicts, charts, opts)?;
+    let c = tex.channels;
+    for (px, a) in solved.chunks_mut(c).zip(&alone.data) {
+        px[c - 1] = *a;
+    }
+    tracing::debug!(
+        alpha_closed = verdicts.closed_count(),
+        colour_closed = colour.closed_count(),
+        "alpha seams judged apart from the colour's"
+    );
+    Ok(Some(AlphaSeams {
+        verdicts,
+        closed: alone.closed,
+        padded: alone.padded,
+    }))
+}
+
 /// One erasure of a level with the seams `closed` selects.
 struct Solved {
     closed: SeamSet,
@@ -127,25 +241,28 @@ struct Solved {
     stats: EraseStats,
 }
 
-/// Pads the gutter along the seams left, then makes the closed seams agree.
+/// Pads the gutter along the seams left, then makes the closed seams agree,
+/// over `channels` interleaved channels of `data`.
+#[allow(clippy::too_many_arguments)]
 fn solve(
     b: &TextureBinding,
     grid: &TexelGrid,
-    tex: &Texture,
+    data: &[f32],
+    channels: usize,
     seams: &SeamSet,
     closed: &[bool],
     charts: &Charts,
     opts: &ProcessOptions,
 ) -> Result<Solved, PipelineError> {
     let selected = seams.select(closed);
-    let mut input = tex.data.clone();
-    let padded = pad_left_seams(grid, &mut input, tex.channels, seams, closed, charts);
+    let mut input = data.to_vec();
+    let padded = pad_left_seams(grid, &mut input, channels, seams, closed, charts);
     let classes = TexelClasses::new(grid, &b.triangles, &selected);
     let (data, stats) = match opts.method {
         Method::Erase => erase(
             grid,
             &input,
-            tex.channels,
+            channels,
             &selected,
             &classes,
             &EraseOptions::new(opts.mode),
@@ -158,7 +275,7 @@ fn solve(
             let out = mask(
                 grid,
                 &input,
-                tex.channels,
+                channels,
                 &selected,
                 &classes,
                 &MaskingOptions::default(),
@@ -345,12 +462,18 @@ pub(super) fn encode_seam_aware(
             })?;
         stats.log("colour");
         if let (Some(a), Some(true)) = (&regular.alpha_values, plan.map(|p| p.erase)) {
+            // Alpha keeps closed the seams closed for it, which differ
+            // from the colour's where its sides are painted apart.
+            let alpha_points = level
+                .alpha
+                .as_ref()
+                .map(|g| seam_points_texel_length(&level.grid, &g.closed));
             let problem = AlphaProblem {
                 width: w,
                 height: h,
                 target: a,
                 inside: &level.classes.inside,
-                points: &points,
+                points: alpha_points.as_ref().unwrap_or(&points),
             };
             optimise_alpha(&problem, &mut alpha_shipped, &sa_opts).log("alpha");
         }

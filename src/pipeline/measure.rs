@@ -12,6 +12,9 @@ use crate::seam::{psnr, SeamMetric};
 pub(super) struct Measure<'a> {
     pub(super) all: SeamMetric,
     pub(super) closed: SeamMetric,
+    /// Over the seams closed for alpha, where alpha was judged apart from
+    /// the colour; else the colour's.
+    pub(super) alpha_closed: Option<SeamMetric>,
     pub(super) charts: &'a Charts,
     pub(super) inside: &'a [bool],
     pub(super) compared: usize,
@@ -69,7 +72,11 @@ impl Measure<'_> {
         };
         AlphaMetrics {
             seam_rms: self.all.seam_rms(alpha, 1, 1),
-            seam_rms_closed: self.closed.seam_rms(alpha, 1, 1),
+            seam_rms_closed: self
+                .alpha_closed
+                .as_ref()
+                .unwrap_or(&self.closed)
+                .seam_rms(alpha, 1, 1),
             psnr: psnr(alpha, input, 1, 1, self.inside),
             encoding_psnr: erased.and_then(|e| psnr(alpha, e, 1, 1, self.inside)),
             opacity_changes: mask.map(|c| alpha::opacity_changes(input, alpha, c, self.inside)),

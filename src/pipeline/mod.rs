@@ -122,6 +122,20 @@ pub struct SeamSummary {
     pub spared: usize,
     /// Gutter texels along the seams left, filled from their own chart.
     pub padded_texels: usize,
+    /// For an erased alpha judged apart from the colour (its sides painted
+    /// apart where the colour's agree, or the other way round): the same
+    /// for alpha. Absent where alpha follows the colour's seams.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub alpha: Option<AlphaSeamSummary>,
+}
+
+/// [`SeamSummary`]'s figures for alpha judged on its own.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct AlphaSeamSummary {
+    pub closed: SeamShare,
+    pub left: SeamShare,
+    pub spared: usize,
+    pub padded_texels: usize,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize)]

@@ -18,8 +18,8 @@ use super::level::{
 };
 use super::measure::Measure;
 use super::{
-    Files, Format, Metrics, OutputFile, PipelineError, ProcessOptions, SeamShare, SeamSummary,
-    TextureReport,
+    AlphaSeamSummary, Files, Format, Metrics, OutputFile, PipelineError, ProcessOptions, SeamShare,
+    SeamSummary, TextureReport,
 };
 use crate::bc1::alpha::decode_alpha_image;
 use crate::bc1::dds::{write_dds, DdsHeaderKind, MipLevel};
@@ -150,6 +150,10 @@ pub(super) fn finish_texture(
     let measure = Measure {
         all: SeamMetric::new(&level0.grid, &level0.seams),
         closed: SeamMetric::new(&level0.grid, &level0.closed),
+        alpha_closed: level0
+            .alpha
+            .as_ref()
+            .map(|a| SeamMetric::new(&level0.grid, &a.closed)),
         charts: &level0.charts,
         inside: &level0.classes.inside,
         compared: colour_channels(tex.channels),
@@ -493,12 +497,12 @@ impl Figures<'_> {
 
 fn seam_summary(level: &ErasedLevel, opts: &ProcessOptions) -> SeamSummary {
     let total = level.seams.total_length();
-    let share = |closed: bool| {
+    let share = |verdicts: &[bool], closed: bool| {
         let picked = level
             .seams
             .seams
             .iter()
-            .zip(&level.verdicts.closed)
+            .zip(verdicts)
             .filter(|(_, c)| **c == closed);
         let (edges, length) = picked.fold((0, 0.0), |(n, l), (s, _)| (n + 1, l + s.length));
         SeamShare {
@@ -506,12 +510,19 @@ fn seam_summary(level: &ErasedLevel, opts: &ProcessOptions) -> SeamSummary {
             length_share: if total > 0.0 { length / total } else { 0.0 },
         }
     };
+    let closed = &level.verdicts.closed;
     SeamSummary {
         tolerance: (!opts.erase_all).then_some(opts.seam_tolerance),
-        closed: share(true),
-        left: share(false),
+        closed: share(closed, true),
+        left: share(closed, false),
         spared: level.verdicts.spared,
         padded_texels: level.padded,
+        alpha: level.alpha.as_ref().map(|a| AlphaSeamSummary {
+            closed: share(&a.verdicts.closed, true),
+            left: share(&a.verdicts.closed, false),
+            spared: a.verdicts.spared,
+            padded_texels: a.padded,
+        }),
     }
 }
 
