@@ -262,3 +262,104 @@ fn hand_painted_controller_keeps_its_panels() {
     );
     assert!(!all.report.warnings.is_empty());
 }
+
+/// Every shared model and the controller: the colour seams closed and left
+/// as before alpha was judged on its own (the table below), and no change
+/// beyond the contract in any channel without a warning that names the
+/// texture: no chart under 30 dB in the erased texture or the DDS, the
+/// inside texels and an erased alpha at 40 dB or more.
+#[test]
+fn every_model_keeps_its_verdicts_and_says_what_it_changes() {
+    // (model, [(texture, closed, left)]), default options.
+    let table: [(&str, &[(&str, usize, usize)]); 13] = [
+        (
+            "BoxTextured/BoxTextured-glTF-Binary/BoxTextured.glb",
+            &[("BoxTextured", 11, 0)],
+        ),
+        ("CesiumMan/CesiumMan.gltf", &[("CesiumMan", 243, 27)]),
+        ("Duck/Duck.gltf", &[("Duck", 126, 40)]),
+        ("Fox/Fox.gltf", &[("Fox", 104, 12)]),
+        (
+            "TextureTransformTest/TextureTransformTest.gltf",
+            &[("UV", 0, 0)],
+        ),
+        (
+            "WaterBottle/WaterBottle.gltf",
+            &[
+                ("WaterBottle_baseColor", 119, 0),
+                ("WaterBottle_emissive", 119, 0),
+            ],
+        ),
+        ("blub/blub.glb", &[("blub", 208, 0)]),
+        (
+            "blub_atlas/blub_atlas_black.glb",
+            &[("blub_atlas_black", 1019, 0)],
+        ),
+        (
+            "blub_atlas/blub_atlas_dilated.glb",
+            &[("blub_atlas_dilated", 1019, 0)],
+        ),
+        (
+            "cube/cube_bad_background_100.glb",
+            &[("cube_bad_background_100", 7, 0)],
+        ),
+        (
+            "cube/cube_gradient_1024.glb",
+            &[("cube_gradient_1024", 6, 1)],
+        ),
+        ("cube/cube_gradient_128.glb", &[("cube_gradient_128", 6, 1)]),
+        (
+            "repo:oculus-touch-v3/oculus-touch-v3-left.glb",
+            &[("nextControllerBoth_color512_png", 461, 101)],
+        ),
+    ];
+    // Level 0 decides every figure checked here.
+    let opts = ProcessOptions {
+        mips: false,
+        ..ProcessOptions::default()
+    };
+    for (rel, expected) in table {
+        let out = run(rel, &opts);
+        let warned = |name: &str, what: &str| {
+            out.report
+                .warnings
+                .iter()
+                .any(|w| w.contains(&format!("texture {name}:")) && w.contains(what))
+        };
+        for t in &out.report.textures {
+            if let Some(&(_, closed, left)) = expected.iter().find(|e| e.0 == t.name) {
+                assert_eq!(
+                    (t.seams.closed.edges, t.seams.left.edges),
+                    (closed, left),
+                    "{rel} {}: colour seams closed, left",
+                    t.name
+                );
+            }
+            for m in [Some(&t.erased), t.bc1_seam_aware.as_ref()]
+                .into_iter()
+                .flatten()
+            {
+                if m.charts_under_30db.unwrap_or(0) > 0 {
+                    assert!(
+                        warned(&t.name, "UV chart(s) under 30 dB"),
+                        "{rel} {}: {m:?}",
+                        t.name
+                    );
+                }
+            }
+            if t.erased.psnr.is_some_and(|p| p < 40.0) {
+                assert!(warned(&t.name, "inside its UV charts"), "{rel} {}", t.name);
+            }
+            let alpha = t.alpha.as_ref().filter(|a| a.erased_seams);
+            if alpha.and_then(|a| a.erased.psnr).is_some_and(|p| p < 40.0) {
+                assert!(warned(&t.name, "its alpha"), "{rel} {}", t.name);
+            }
+        }
+        assert!(
+            expected
+                .iter()
+                .all(|e| out.report.textures.iter().any(|t| t.name == e.0)),
+            "{rel}: a texture of the table is missing"
+        );
+    }
+}
