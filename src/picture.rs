@@ -38,6 +38,10 @@ pub struct SeamPicture<'a> {
     /// Per seam edge (same order as `seams.seams`): true when the edge was
     /// closed (its sides made to agree), false when it was left as painted.
     pub closed: &'a [bool],
+    /// For an alpha judged apart from the colour: per seam edge, whether its
+    /// alpha was closed. Edges whose colour closed but whose alpha was left
+    /// as painted are drawn in their own hue.
+    pub alpha_closed: Option<&'a [bool]>,
 }
 
 /// Why the picture could not be drawn.
@@ -81,6 +85,9 @@ const PANEL_BRIGHTNESS: f32 = 1.0 / 3.0;
 const CLOSED_HUE: [u8; 3] = [0, 255, 190];
 /// Edges left as painted: magenta, clearly not the closed hue.
 const LEFT_HUE: [u8; 3] = [255, 70, 210];
+/// Edges whose colour closed while their alpha, painted apart, was left:
+/// amber, between the two and unlike either.
+const ALPHA_LEFT_HUE: [u8; 3] = [255, 176, 0];
 /// Residual (8-bit levels, RMS) at which a line reaches full brightness:
 /// around here a BC1 seam starts to be visible.
 const FULL_BRIGHT_LEVELS: f64 = 8.0;
@@ -150,7 +157,8 @@ pub fn seams_png(p: &SeamPicture) -> Result<Vec<u8>, PictureError> {
         h: ph,
     };
     let legend_top = panel.y + panel.h + MARGIN;
-    let legend_h = 2 * SWATCH_PX + SWATCH_GAP;
+    let hues = legend_hues(p);
+    let legend_h = hues.len() as u32 * (SWATCH_PX + SWATCH_GAP) - SWATCH_GAP;
     let strip_top = legend_top + legend_h + MARGIN;
     let strip_h = match rows.len() as u32 {
         0 => 0,
@@ -166,7 +174,7 @@ pub fn seams_png(p: &SeamPicture) -> Result<Vec<u8>, PictureError> {
 
     draw_panel_texture(&mut img, p, panel);
     draw_panel_seams(&mut img, p, &residuals, panel);
-    draw_legend(&mut img, MARGIN, legend_top);
+    draw_legend(&mut img, &hues, MARGIN, legend_top);
     draw_strip(&mut img, p, &rows, strip_top);
     encode_png(&img)
 }
@@ -191,11 +199,13 @@ fn validate(p: &SeamPicture) -> Result<(), PictureError> {
             });
         }
     }
-    if p.closed.len() != p.seams.seams.len() {
-        return Err(PictureError::ClosedFlags {
-            closed: p.closed.len(),
-            seams: p.seams.seams.len(),
-        });
+    for flags in std::iter::once(p.closed).chain(p.alpha_closed) {
+        if flags.len() != p.seams.seams.len() {
+            return Err(PictureError::ClosedFlags {
+                closed: flags.len(),
+                seams: p.seams.seams.len(),
+            });
+        }
     }
     Ok(())
 }
@@ -257,10 +267,28 @@ fn worst_closed(closed: &[bool], residuals: &[f64]) -> Vec<usize> {
     idx
 }
 
-/// The class colour scaled by residual: [`DIM_LINE`] of full at 0, full at
+/// The hue of edge `i`'s class: closed, left, or closed in colour with its
+/// alpha left.
+fn hue_of(p: &SeamPicture, i: usize) -> [u8; 3] {
+    match (p.closed[i], p.alpha_closed.map(|a| a[i])) {
+        (true, Some(false)) => ALPHA_LEFT_HUE,
+        (true, _) => CLOSED_HUE,
+        (false, _) => LEFT_HUE,
+    }
+}
+
+/// The hues the legend shows, one row each.
+fn legend_hues(p: &SeamPicture) -> Vec<[u8; 3]> {
+    let mut hues = vec![CLOSED_HUE, LEFT_HUE];
+    if p.alpha_closed.is_some() {
+        hues.push(ALPHA_LEFT_HUE);
+    }
+    hues
+}
+
+/// The class hue scaled by residual: [`DIM_LINE`] of full at 0, full at
 /// [`FULL_BRIGHT_LEVELS`] and above (and for a residual that is not a number).
-fn edge_colour(closed: bool, residual: f64) -> Rgb<u8> {
-    let hue = if closed { CLOSED_HUE } else { LEFT_HUE };
+fn edge_colour(hue: [u8; 3], residual: f64) -> Rgb<u8> {
     let t = if residual.is_nan() {
         1.0
     } else {
@@ -337,7 +365,7 @@ fn draw_panel_seams(img: &mut RgbImage, p: &SeamPicture, residuals: &[f64], r: R
     };
     for i in order {
         let e = &p.seams.seams[i];
-        let colour = edge_colour(p.closed[i], residuals[i]);
+        let colour = edge_colour(hue_of(p, i), residuals[i]);
         for half in [e.a, e.b] {
             for [s, t] in wrapped_copies(p.grid, half) {
                 let (s, t) = (p.grid.to_texel(s), p.grid.to_texel(t));
@@ -382,8 +410,8 @@ fn period_maps(wrap: Wrap, lo: f64, hi: f64) -> Vec<(f64, f64)> {
 
 /// Swatches for each class from residual 0 to [`FULL_BRIGHT_LEVELS`]:
 /// closed on the first row, left on the second.
-fn draw_legend(img: &mut RgbImage, x: u32, y: u32) {
-    for (row, closed) in [true, false].into_iter().enumerate() {
+fn draw_legend(img: &mut RgbImage, hues: &[[u8; 3]], x: u32, y: u32) {
+    for (row, &hue) in hues.iter().enumerate() {
         let top = y + row as u32 * (SWATCH_PX + SWATCH_GAP);
         for s in 0..LEGEND_STEPS {
             let level = FULL_BRIGHT_LEVELS * f64::from(s) / f64::from(LEGEND_STEPS - 1);
@@ -393,7 +421,7 @@ fn draw_legend(img: &mut RgbImage, x: u32, y: u32) {
                 w: SWATCH_PX,
                 h: SWATCH_PX,
             };
-            fill(img, r, edge_colour(closed, level));
+            fill(img, r, edge_colour(hue, level));
         }
     }
 }
@@ -627,6 +655,7 @@ mod tests {
                 seam_aware: &self.seam_aware,
                 seams: &self.seams,
                 closed,
+                alpha_closed: None,
             }
         }
 
@@ -665,6 +694,36 @@ mod tests {
     }
 
     #[test]
+    fn alpha_left_where_the_colour_closed_has_a_hue_of_its_own() {
+        let f = fixture();
+        let (closed, alpha) = ([true, true, false], [false, true, false]);
+        let p = SeamPicture {
+            alpha_closed: Some(&alpha),
+            ..f.picture(&closed)
+        };
+        let img = image::load_from_memory(&seams_png(&p).unwrap())
+            .unwrap()
+            .to_rgb8();
+        let (x, y) = panel_px([0.25, 0.25]);
+        let [r, g, b] = img.get_pixel(x, y).0;
+        assert!(r > g && g > b && b == 0, "amber: {:?}", [r, g, b]);
+        let (x, y) = panel_px([0.25, 0.75]);
+        assert!(is_closed_hue(*img.get_pixel(x, y)));
+        let short = [true];
+        let p = SeamPicture {
+            alpha_closed: Some(&short),
+            ..f.picture(&closed)
+        };
+        assert!(matches!(
+            seams_png(&p),
+            Err(PictureError::ClosedFlags {
+                closed: 1,
+                seams: 3
+            })
+        ));
+    }
+
+    #[test]
     fn overview_lines_have_class_hue_and_residual_brightness() {
         let f = fixture();
         let img = f.draw(&[true, true, false]);
@@ -680,7 +739,7 @@ mod tests {
             rough.0[1] > calm.0[1] && rough.0[2] > calm.0[2],
             "{calm:?} {rough:?}"
         );
-        assert_eq!(rough, edge_colour(true, 1e9));
+        assert_eq!(rough, edge_colour(CLOSED_HUE, 1e9));
         // Both half-edges are drawn: `b` of the calm edge too.
         let (x, y) = panel_px([0.75, 0.25]);
         assert_eq!(*img.get_pixel(x, y), calm);
@@ -788,6 +847,7 @@ mod tests {
             seam_aware: &data,
             seams: &seams,
             closed: &[],
+            alpha_closed: None,
         };
         let img = image::load_from_memory(&seams_png(&p).unwrap())
             .unwrap()

@@ -282,6 +282,7 @@ pub(super) fn finish_texture(
             seam_aware: shipped,
             seams: &level0.seams,
             closed: &level0.verdicts.closed,
+            alpha_closed: level0.alpha.as_ref().map(|a| a.verdicts.closed.as_slice()),
         };
         let name = format!("{}.seams.png", b.name);
         files.push(OutputFile {
