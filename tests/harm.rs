@@ -263,6 +263,9 @@ fn hand_painted_controller_keeps_its_panels() {
     assert!(!all.report.warnings.is_empty());
 }
 
+/// A texture's colour seams: (name, closed, left).
+type Verdicts = (&'static str, usize, usize);
+
 /// Every shared model and the controller: the colour seams closed and left
 /// as before alpha was judged on its own (the table below), and no change
 /// beyond the contract in any channel without a warning that names the
@@ -271,7 +274,7 @@ fn hand_painted_controller_keeps_its_panels() {
 #[test]
 fn every_model_keeps_its_verdicts_and_says_what_it_changes() {
     // (model, [(texture, closed, left)]), default options.
-    let table: [(&str, &[(&str, usize, usize)]); 13] = [
+    let table: [(&str, &[Verdicts]); 13] = [
         (
             "BoxTextured/BoxTextured-glTF-Binary/BoxTextured.glb",
             &[("BoxTextured", 11, 0)],
