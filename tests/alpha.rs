@@ -179,6 +179,9 @@ fn alpha_painted_apart_stays_as_painted_while_the_colour_closes() {
     );
     let psnr = f(&a["erased"]["psnr"]);
     assert!(psnr >= 40.0, "alpha repainted to {psnr} dB");
+    // No chart's alpha falls under 30 dB either.
+    assert_eq!(a["erased"]["charts_under_30db"], 0, "{a}");
+    assert!(f(&a["erased"]["worst_chart_psnr"]) >= 30.0, "{a}");
     for d in ["ideal", "nvidia", "amd"] {
         assert!(f(&a["dds"][d]["psnr"]) >= 40.0, "{d}: {a}");
     }

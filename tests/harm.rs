@@ -353,6 +353,14 @@ fn every_model_keeps_its_verdicts_and_says_what_it_changes() {
             if t.erased.psnr.is_some_and(|p| p < 40.0) {
                 assert!(warned(&t.name, "inside its UV charts"), "{rel} {}", t.name);
             }
+            if let Some(a) = &t.alpha {
+                let dds = a.dds.as_ref().and_then(|d| d.get("ideal"));
+                for m in [Some(&a.erased), dds].into_iter().flatten() {
+                    if m.charts_under_30db.unwrap_or(0) > 0 {
+                        assert!(warned(&t.name, "the alpha of"), "{rel} {}: {m:?}", t.name);
+                    }
+                }
+            }
             let alpha = t.alpha.as_ref().filter(|a| a.erased_seams);
             if alpha.and_then(|a| a.erased.psnr).is_some_and(|p| p < 40.0) {
                 assert!(warned(&t.name, "its alpha"), "{rel} {}", t.name);

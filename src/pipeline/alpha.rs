@@ -138,6 +138,12 @@ pub struct AlphaMetrics {
     pub seam_rms_closed: Option<f64>,
     /// Alpha PSNR over inside texels against the input's alpha.
     pub psnr: Option<f64>,
+    /// The lowest alpha PSNR of any UV chart against the input, and how
+    /// many charts fall under 30 dB; absent where no chart's alpha changed.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub worst_chart_psnr: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub charts_under_30db: Option<usize>,
     /// For encodings: against the erased alpha, the one encoded (the
     /// encoding's own cost).
     #[serde(skip_serializing_if = "Option::is_none")]

@@ -70,7 +70,13 @@ impl Measure<'_> {
             (AlphaUse::Mask { .. }, Some(c)) => Some(c),
             _ => None,
         };
+        let charts = self.charts.fidelity(alpha, input, 1, 1);
+        // A chart whose alpha did not change has no figure: the input's own
+        // alpha, and alpha left as painted, show none.
+        let changed = charts.worst_psnr.is_some();
         AlphaMetrics {
+            worst_chart_psnr: charts.worst_psnr,
+            charts_under_30db: changed.then_some(charts.under_threshold),
             seam_rms: self.all.seam_rms(alpha, 1, 1),
             seam_rms_closed: self
                 .alpha_closed

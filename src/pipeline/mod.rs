@@ -351,6 +351,13 @@ fn harm_warnings(t: &TextureReport, opts: &ProcessOptions) -> Vec<String> {
             t.name
         ));
     }
+    if let Some(w) = t
+        .alpha
+        .as_ref()
+        .and_then(|a| alpha_chart_warning(t, a, why))
+    {
+        out.push(w);
+    }
     let alpha = t.alpha.as_ref().filter(|a| a.erased_seams);
     if let Some(psnr) = alpha
         .and_then(|a| a.erased.psnr)
@@ -364,6 +371,29 @@ fn harm_warnings(t: &TextureReport, opts: &ProcessOptions) -> Vec<String> {
         ));
     }
     out
+}
+
+/// Charts whose alpha erasure or the DDS (as the ideal decoder reads it)
+/// took below [`HARM_PSNR_DB`].
+fn alpha_chart_warning(t: &TextureReport, a: &alpha::AlphaReport, why: &str) -> Option<String> {
+    let dds = a.dds.as_ref().and_then(|d| d.get("ideal"));
+    let (what, m) = [("erased texture", Some(&a.erased)), ("DDS", dds)]
+        .into_iter()
+        .filter_map(|(what, m)| Some((what, m?)))
+        .find(|(_, m)| m.charts_under_30db.unwrap_or(0) > 0)?;
+    let (charts, psnr) = (m.charts_under_30db?, m.worst_chart_psnr?);
+    tracing::warn!(
+        texture = %t.name,
+        version = what,
+        charts_under_30db = charts,
+        worst_chart_psnr = psnr,
+        "UV charts' alpha changed below 30 dB"
+    );
+    Some(format!(
+        "texture {}: the alpha of {charts} UV chart(s) under {HARM_PSNR_DB} dB in the {what} \
+         (worst {psnr:.1} dB){why}",
+        t.name
+    ))
 }
 
 /// Charts repainted below [`HARM_PSNR_DB`] by erasure or by the encoding
