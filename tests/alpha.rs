@@ -52,6 +52,21 @@ fn alpha_duck(
     path
 }
 
+/// A scratch folder, and in it the output of the default run on
+/// [`alpha_duck`]'s model.
+fn processed_duck(
+    tag: &str,
+    mode: &str,
+    cutoff: Option<f64>,
+    alpha: impl Fn(u32, u32, [u8; 3]) -> u8,
+) -> (PathBuf, PathBuf) {
+    let dir = scratch(tag);
+    let model = alpha_duck(&dir, mode, cutoff, alpha);
+    let out = dir.join("out");
+    process(&model, &out, &[]);
+    (dir, out)
+}
+
 fn process(model: &Path, out: &Path, extra: &[&str]) -> Value {
     common::process_report(model, out, extra)
 }
@@ -122,10 +137,7 @@ fn a_mask_keeps_every_texels_opacity_in_one_bit_alpha() {
 #[needs(texture2ddecoder)]
 #[test]
 fn outside_readers_read_a_mask_dds_as_we_do() {
-    let dir = scratch("mask-readers");
-    let model = alpha_duck(&dir, "MASK", Some(0.5), |x, y, _| holes(x, y));
-    let out = dir.join("out");
-    process(&model, &out, &[]);
+    let (dir, out) = processed_duck("mask-readers", "MASK", Some(0.5), |x, y, _| holes(x, y));
     let dds = read_dds(&std::fs::read(out.join("duck_alpha.dds")).unwrap()).unwrap();
     let l = &dds.levels[0];
     let (w, h) = (l.width as usize, l.height as usize);
@@ -270,10 +282,9 @@ fn a_blend_gets_bc3_with_its_alpha_seams_closed() {
 #[needs(texture2ddecoder)]
 #[test]
 fn outside_readers_read_a_blend_dds_as_we_do() {
-    let dir = scratch("blend-readers");
-    let model = alpha_duck(&dir, "BLEND", None, |_, _, rgb| from_luminance(rgb));
-    let out = dir.join("out");
-    process(&model, &out, &[]);
+    let (dir, out) = processed_duck("blend-readers", "BLEND", None, |_, _, rgb| {
+        from_luminance(rgb)
+    });
     let dds = read_dds(&std::fs::read(out.join("duck_alpha.dds")).unwrap()).unwrap();
     let l = &dds.levels[0];
     let (w, h) = (l.width as usize, l.height as usize);
@@ -288,10 +299,9 @@ fn outside_readers_read_a_blend_dds_as_we_do() {
 #[needs(gltf_validator)]
 #[test]
 fn a_blend_model_rewritten_passes_the_khronos_validator() {
-    let dir = scratch("blend-validator");
-    let model = alpha_duck(&dir, "BLEND", None, |_, _, rgb| from_luminance(rgb));
-    let out = dir.join("out");
-    process(&model, &out, &[]);
+    let (dir, out) = processed_duck("blend-validator", "BLEND", None, |_, _, rgb| {
+        from_luminance(rgb)
+    });
     let verdict = common::gltf_validate(&out.join("duck_blend.gltf"));
     assert_eq!(verdict["errors"], 0, "{verdict}");
     let _ = std::fs::remove_dir_all(&dir);

@@ -73,10 +73,7 @@ pub(super) fn erase_level(
             compared,
             &seams,
             &charts,
-            &ClassifyOptions {
-                tolerance: opts.seam_tolerance,
-                remove_chart_offsets: opts.mode == Mode::Global,
-            },
+            &judging(opts),
         )
     };
     let seams_ms = t.elapsed().as_millis() as u64;
@@ -157,32 +154,15 @@ fn judged_solve(
     charts: &Charts,
     opts: &ProcessOptions,
 ) -> Result<Solved, PipelineError> {
-    let mut solved = solve(
-        b,
-        grid,
-        data,
-        channels,
-        seams,
-        &verdicts.closed,
-        charts,
-        opts,
-    )?;
+    let run = |closed: &[bool]| solve(b, grid, data, channels, seams, closed, charts, opts);
+    let mut solved = run(&verdicts.closed)?;
     if !opts.erase_all {
         // The middle zone closes only where that repaints no chart.
         let harmed = charts.harmed(&solved.data, data, channels, compared);
         let spared = verdicts.spare(seams, charts, &harmed);
         if spared > 0 {
             tracing::debug!(spared, "seams left to spare their charts");
-            solved = solve(
-                b,
-                grid,
-                data,
-                channels,
-                seams,
-                &verdicts.closed,
-                charts,
-                opts,
-            )?;
+            solved = run(&verdicts.closed)?;
         }
     }
     Ok(solved)
@@ -207,11 +187,7 @@ fn alpha_apart(
     let Some(plane) = alpha::channel(tex) else {
         return Ok(None);
     };
-    let judge = ClassifyOptions {
-        tolerance: opts.seam_tolerance,
-        remove_chart_offsets: opts.mode == Mode::Global,
-    };
-    let mut verdicts = classify(grid, &plane, 1, 1, seams, charts, &judge);
+    let mut verdicts = classify(grid, &plane, 1, 1, seams, charts, &judging(opts));
     if verdicts.closed == colour.closed {
         return Ok(None);
     }
@@ -230,6 +206,14 @@ fn alpha_apart(
         closed: alone.closed,
         padded: alone.padded,
     }))
+}
+
+/// How seams are judged, colour and alpha alike.
+fn judging(opts: &ProcessOptions) -> ClassifyOptions {
+    ClassifyOptions {
+        tolerance: opts.seam_tolerance,
+        remove_chart_offsets: opts.mode == Mode::Global,
+    }
 }
 
 /// One erasure of a level with the seams `closed` selects.

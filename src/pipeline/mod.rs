@@ -342,7 +342,20 @@ fn harm_warnings(t: &TextureReport, opts: &ProcessOptions) -> Vec<String> {
     } else {
         ""
     };
-    let mut out: Vec<String> = chart_warning(t, why).into_iter().collect();
+    let dds = t.bc1_seam_aware.as_ref();
+    let versions = [
+        (
+            "erased texture",
+            t.erased.charts_under_30db,
+            t.erased.worst_chart_psnr,
+        ),
+        (
+            "DDS",
+            dds.and_then(|m| m.charts_under_30db),
+            dds.and_then(|m| m.worst_chart_psnr),
+        ),
+    ];
+    let mut out: Vec<String> = chart_warning(t, "", versions, why).into_iter().collect();
     if let Some(psnr) = t.erased.psnr.filter(|&p| p < CHANGE_PSNR_DB) {
         tracing::warn!(texture = %t.name, psnr, "texture changed below 40 dB");
         out.push(format!(
@@ -351,12 +364,22 @@ fn harm_warnings(t: &TextureReport, opts: &ProcessOptions) -> Vec<String> {
             t.name
         ));
     }
-    if let Some(w) = t
-        .alpha
-        .as_ref()
-        .and_then(|a| alpha_chart_warning(t, a, why))
-    {
-        out.push(w);
+    if let Some(a) = &t.alpha {
+        // The DDS's alpha as the ideal decoder reads it.
+        let dds = a.dds.as_ref().and_then(|d| d.get("ideal"));
+        let versions = [
+            (
+                "erased texture",
+                a.erased.charts_under_30db,
+                a.erased.worst_chart_psnr,
+            ),
+            (
+                "DDS",
+                dds.and_then(|m| m.charts_under_30db),
+                dds.and_then(|m| m.worst_chart_psnr),
+            ),
+        ];
+        out.extend(chart_warning(t, "the alpha of ", versions, why));
     }
     let alpha = t.alpha.as_ref().filter(|a| a.erased_seams);
     if let Some(psnr) = alpha
@@ -373,50 +396,28 @@ fn harm_warnings(t: &TextureReport, opts: &ProcessOptions) -> Vec<String> {
     out
 }
 
-/// Charts whose alpha erasure or the DDS (as the ideal decoder reads it)
-/// took below [`HARM_PSNR_DB`].
-fn alpha_chart_warning(t: &TextureReport, a: &alpha::AlphaReport, why: &str) -> Option<String> {
-    let dds = a.dds.as_ref().and_then(|d| d.get("ideal"));
-    let (what, m) = [("erased texture", Some(&a.erased)), ("DDS", dds)]
+/// The first of `versions` (name, charts under [`HARM_PSNR_DB`], worst
+/// chart PSNR) with a chart under it, as a warning; `of` says which
+/// channels (`""` for colour, `"the alpha of "`).
+fn chart_warning(
+    t: &TextureReport,
+    of: &str,
+    versions: [(&str, Option<usize>, Option<f64>); 2],
+    why: &str,
+) -> Option<String> {
+    let (what, charts, psnr) = versions
         .into_iter()
-        .filter_map(|(what, m)| Some((what, m?)))
-        .find(|(_, m)| m.charts_under_30db.unwrap_or(0) > 0)?;
-    let (charts, psnr) = (m.charts_under_30db?, m.worst_chart_psnr?);
+        .find_map(|(what, n, worst)| Some((what, n.filter(|&n| n > 0)?, worst?)))?;
     tracing::warn!(
         texture = %t.name,
-        version = what,
-        charts_under_30db = charts,
-        worst_chart_psnr = psnr,
-        "UV charts' alpha changed below 30 dB"
-    );
-    Some(format!(
-        "texture {}: the alpha of {charts} UV chart(s) under {HARM_PSNR_DB} dB in the {what} \
-         (worst {psnr:.1} dB){why}",
-        t.name
-    ))
-}
-
-/// Charts repainted below [`HARM_PSNR_DB`] by erasure or by the encoding
-/// the DDS holds.
-fn chart_warning(t: &TextureReport, why: &str) -> Option<String> {
-    let versions = [
-        ("erased texture", Some(&t.erased)),
-        ("DDS", t.bc1_seam_aware.as_ref()),
-    ];
-    let (what, m) = versions
-        .into_iter()
-        .filter_map(|(what, m)| Some((what, m?)))
-        .find(|(_, m)| m.charts_under_30db.unwrap_or(0) > 0)?;
-    let (charts, psnr) = (m.charts_under_30db?, m.worst_chart_psnr?);
-    tracing::warn!(
-        texture = %t.name,
+        channels = if of.is_empty() { "colour" } else { "alpha" },
         version = what,
         charts_under_30db = charts,
         worst_chart_psnr = psnr,
         "UV charts changed below 30 dB"
     );
     Some(format!(
-        "texture {}: {charts} UV chart(s) under {HARM_PSNR_DB} dB in the {what} \
+        "texture {}: {of}{charts} UV chart(s) under {HARM_PSNR_DB} dB in the {what} \
          (worst {psnr:.1} dB){why}",
         t.name
     ))
