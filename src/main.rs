@@ -244,7 +244,7 @@ struct SubmitArgs {
     batch: BatchArgs,
     #[command(flatten)]
     options: OptionArgs,
-    /// The server: http://HOST:PORT (a bare HOST:PORT is taken as http://).
+    /// The server: http://HOST:PORT.
     #[arg(long, value_name = "URL")]
     server: String,
     /// How long a request waits for a server that is unreachable or busy

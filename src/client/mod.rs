@@ -65,21 +65,20 @@ pub enum ServerUrlError {
     Scheme { text: String, scheme: String },
     #[error("--server {text}: a server's address has no query or fragment; give http://HOST:PORT")]
     QueryOrFragment { text: String },
+    #[error("--server {text}: no scheme; give http://{text}")]
+    NoScheme { text: String },
 }
 
-/// The address requests are made under, from what `--server` says, and
-/// whether `http://` was assumed. A scheme-less `HOST:PORT` is taken as
-/// `http://`, as curl takes it; anything the client cannot reach is
-/// refused here, before a batch starts, rather than retried for minutes.
-pub fn server_base(text: &str) -> Result<(String, bool), ServerUrlError> {
+/// The address requests are made under, from what `--server` says.
+/// Anything the client cannot reach is refused at once (exit status 2)
+/// rather than retried for ten minutes: a bare `HOST:PORT` too, whose
+/// scheme the user should say (the error shows the fix).
+pub fn server_base(text: &str) -> Result<String, ServerUrlError> {
     let text = text.trim();
-    let assumed = !text.contains("://");
-    let full = if assumed {
-        format!("http://{text}")
-    } else {
-        text.to_string()
-    };
-    let url = reqwest::Url::parse(&full).map_err(|e| ServerUrlError::Unparsable {
+    if !text.contains("://") {
+        return Err(ServerUrlError::NoScheme { text: text.into() });
+    }
+    let url = reqwest::Url::parse(text).map_err(|e| ServerUrlError::Unparsable {
         text: text.to_string(),
         reason: e.to_string(),
     })?;
@@ -102,7 +101,7 @@ pub fn server_base(text: &str) -> Result<(String, bool), ServerUrlError> {
     if url.query().is_some() || url.fragment().is_some() {
         return Err(ServerUrlError::QueryOrFragment { text: text.into() });
     }
-    Ok((url.as_str().trim_end_matches('/').to_string(), assumed))
+    Ok(url.as_str().trim_end_matches('/').to_string())
 }
 
 /// What the client reads of a job.
@@ -144,11 +143,7 @@ impl Remote {
     /// A client for `params.server`; an address it cannot reach is the
     /// caller's input at fault.
     pub fn new(params: RemoteParams, options: ProcessOptions) -> Result<Remote, RunError> {
-        let (server, assumed) =
-            server_base(&params.server).map_err(|e| RunError::BadInput(e.to_string()))?;
-        if assumed {
-            tracing::warn!(server = %server, "--server {} has no scheme: taken as {server}", params.server.trim());
-        }
+        let server = server_base(&params.server).map_err(|e| RunError::BadInput(e.to_string()))?;
         let http = Client::builder()
             .connect_timeout(Duration::from_secs(10))
             // Uploads and downloads of large models take a while; a stuck
