@@ -4,7 +4,7 @@
 use std::path::PathBuf;
 
 use seamstress::model::{self, find_seams, LoadOptions, Model, Texture};
-use seamstress::pipeline::{self, Output, ProcessOptions};
+use seamstress::pipeline::{self, HarmCause, Output, ProcessOptions};
 use seamstress::seam::charts::Charts;
 use seamstress::seam::classify::{classify, ClassifyOptions};
 use seamstress::seam::{colour_channels, SeamMetric, TexelGrid};
@@ -100,11 +100,18 @@ fn erase_all_repaints_the_fox_chart_and_says_so() {
     assert_eq!(t.seams.left.edges, 0);
     assert_eq!(t.seams.tolerance, None);
     assert!(t.erased.charts_under_30db.unwrap() >= 1, "{:?}", t.erased);
-    // The repainted chart, and the inside texels (38 dB) it drags down.
+    // The repainted chart, named with where it lies, how far it fell and
+    // why, and the inside texels (38 dB) it drags down.
+    let chart = &t.seams.repainted[0];
+    assert_eq!(chart.cause, HarmCause::EraseAll);
+    assert!(chart.psnr < 30.0 && chart.texels > 10_000, "{chart:?}");
     let w = &out.report.warnings;
+    let named = format!("chart {} ({} texels, UV ", chart.chart, chart.texels);
     assert!(
-        w.iter()
-            .any(|w| w.contains(&t.name) && w.contains("UV chart(s) under 30 dB")),
+        w.iter().any(|w| w.contains(&t.name)
+            && w.contains("UV chart(s) under 30 dB")
+            && w.contains(&named)
+            && w.contains(&format!("at {:.1} dB", chart.psnr))),
         "{w:?}"
     );
     assert!(w.iter().all(|w| w.contains("--erase-all")), "{w:?}");

@@ -7,14 +7,14 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use super::alpha::{self, AlphaFormat, AlphaPlan};
-use super::{Method, PipelineError, ProcessOptions};
+use super::{ChartHarm, HarmCause, Method, PipelineError, ProcessOptions};
 use crate::bc1::alpha::{encode_alpha_image, AlphaBlock};
 use crate::bc1::alpha_seam_aware::{optimise_alpha, AlphaProblem};
 use crate::bc1::punch::punch_through;
 use crate::bc1::seam_aware::{optimise, Problem, SeamAwareOptions};
 use crate::bc1::{self, Block};
-use crate::model::{find_seams, SeamSet, Texture, TextureBinding};
-use crate::seam::charts::Charts;
+use crate::model::{find_seams, SeamSet, Texture, TextureBinding, UvTriangle};
+use crate::seam::charts::{Charts, HARM_PSNR_DB};
 use crate::seam::classify::{classify, ClassifyOptions, SeamVerdicts};
 use crate::seam::erase::{erase, EraseOptions, EraseStats, Mode};
 use crate::seam::masking::{mask, MaskingOptions};
@@ -37,6 +37,8 @@ pub(super) struct ErasedLevel {
     pub(super) charts: Charts,
     /// Gutter texels filled from their own chart along the seams left open.
     pub(super) padded: usize,
+    /// Charts whose colour the erasure still repainted under 30 dB.
+    pub(super) harm: Vec<ChartHarm>,
     pub(super) classes: TexelClasses,
     /// The solver's output before rounding (the next mip level is filtered from it).
     pub(super) float: Texture,
@@ -47,11 +49,25 @@ pub(super) struct ErasedLevel {
     pub(super) erase_ms: u64,
 }
 
+/// Which level of the mip chain is erased: how far seams are spared for
+/// the charts.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) enum Rung {
+    /// Level 0, the one the report judges: a chart still repainted after
+    /// sparing the middle zone has every seam touching it spared.
+    Base,
+    /// A smaller level: charts a few texels across are mostly seam band,
+    /// and closing any seam moves them; only the middle zone is spared, so
+    /// that the agreeing seams stay closed however far the model is seen.
+    Mip,
+}
+
 pub(super) fn erase_level(
     b: &TextureBinding,
     tex: &Texture,
     opts: &ProcessOptions,
     erase_alpha: bool,
+    rung: Rung,
 ) -> Result<ErasedLevel, PipelineError> {
     let grid = TexelGrid {
         width: tex.width,
@@ -79,14 +95,14 @@ pub(super) fn erase_level(
     let seams_ms = t.elapsed().as_millis() as u64;
 
     let t = Instant::now();
-    let mut solved = judged_solve(
+    let (mut solved, harm) = judged_solve(
         b,
         &grid,
         (&tex.data, tex.channels, compared),
         &seams,
         &mut verdicts,
         &charts,
-        opts,
+        (opts, rung),
     )?;
     let alpha_group = if erase_alpha && !opts.erase_all {
         alpha_apart(
@@ -96,7 +112,7 @@ pub(super) fn erase_level(
             &seams,
             &verdicts,
             &charts,
-            opts,
+            (opts, rung),
             &mut solved.data,
         )?
     } else {
@@ -122,6 +138,7 @@ pub(super) fn erase_level(
         alpha: alpha_group,
         charts,
         padded: solved.padded,
+        harm,
         classes: solved.classes,
         float,
         stored,
@@ -139,12 +156,16 @@ pub(super) struct AlphaSeams {
     /// alpha search.
     pub(super) closed: SeamSet,
     pub(super) padded: usize,
+    /// Charts whose alpha the erasure still repainted.
+    pub(super) harm: Vec<ChartHarm>,
 }
 
 /// The solve for `verdicts`, then, unless every seam is to close, the
 /// middle zone's edges whose closing repainted a chart spared and the
-/// solve made again without them. `data` is (texels, channels, channels
-/// compared).
+/// solve made again without them; where a chart is still repainted, every
+/// edge touching it is spared, whatever its jump, and the solve made once
+/// more. `data` is (texels, channels, channels compared).
+#[allow(clippy::too_many_arguments)]
 fn judged_solve(
     b: &TextureBinding,
     grid: &TexelGrid,
@@ -152,20 +173,65 @@ fn judged_solve(
     seams: &SeamSet,
     verdicts: &mut SeamVerdicts,
     charts: &Charts,
-    opts: &ProcessOptions,
-) -> Result<Solved, PipelineError> {
+    (opts, rung): (&ProcessOptions, Rung),
+) -> Result<(Solved, Vec<ChartHarm>), PipelineError> {
     let run = |closed: &[bool]| solve(b, grid, data, channels, seams, closed, charts, opts);
+    let harmed = |solved: &Solved| charts.harmed(&solved.data, data, channels, compared);
     let mut solved = run(&verdicts.closed)?;
     if !opts.erase_all {
         // The middle zone closes only where that repaints no chart.
-        let harmed = charts.harmed(&solved.data, data, channels, compared);
-        let spared = verdicts.spare(seams, charts, &harmed);
+        let spared = verdicts.spare(seams, charts, &harmed(&solved));
         if spared > 0 {
             tracing::debug!(spared, "seams left to spare their charts");
             solved = run(&verdicts.closed)?;
         }
+        let still = harmed(&solved);
+        if rung == Rung::Base && still.contains(&true) {
+            let spared = verdicts.spare_touching(grid, seams, charts, &still);
+            if spared > 0 {
+                tracing::debug!(spared, "seams of every zone left to spare their charts");
+                solved = run(&verdicts.closed)?;
+            }
+        }
     }
-    Ok(solved)
+    let harm = chart_harm(
+        charts,
+        &b.triangles,
+        charts.psnr_per_chart(&solved.data, data, channels, compared),
+        HarmCause::of(opts),
+    );
+    Ok((solved, harm))
+}
+
+/// The charts `psnr` puts under [`HARM_PSNR_DB`], worst first, with where
+/// they lie and why sparing could not keep them.
+fn chart_harm(
+    charts: &Charts,
+    triangles: &[UvTriangle],
+    psnr: Vec<Option<f64>>,
+    cause: HarmCause,
+) -> Vec<ChartHarm> {
+    let under = |p: &Option<f64>| p.is_some_and(|p| p < HARM_PSNR_DB);
+    if !psnr.iter().any(under) {
+        return Vec::new();
+    }
+    let extents = charts.extents(triangles);
+    let mut out: Vec<ChartHarm> = psnr
+        .iter()
+        .zip(&extents)
+        .enumerate()
+        .filter(|(_, (p, _))| under(p))
+        .map(|(chart, (p, e))| ChartHarm {
+            chart: chart as u32,
+            texels: e.texels,
+            psnr: p.unwrap_or(f64::INFINITY),
+            uv_min: e.uv_min,
+            uv_max: e.uv_max,
+            cause,
+        })
+        .collect();
+    out.sort_by(|a, b| a.psnr.total_cmp(&b.psnr).then(a.chart.cmp(&b.chart)));
+    out
 }
 
 /// Judges the alpha of a texture whose alpha is erased by the same rule as
@@ -181,7 +247,7 @@ fn alpha_apart(
     seams: &SeamSet,
     colour: &SeamVerdicts,
     charts: &Charts,
-    opts: &ProcessOptions,
+    (opts, rung): (&ProcessOptions, Rung),
     solved: &mut [f32],
 ) -> Result<Option<AlphaSeams>, PipelineError> {
     let Some(plane) = alpha::channel(tex) else {
@@ -191,7 +257,15 @@ fn alpha_apart(
     if verdicts.closed == colour.closed {
         return Ok(None);
     }
-    let alone = judged_solve(b, grid, (&plane, 1, 1), seams, &mut verdicts, charts, opts)?;
+    let (alone, harm) = judged_solve(
+        b,
+        grid,
+        (&plane, 1, 1),
+        seams,
+        &mut verdicts,
+        charts,
+        (opts, rung),
+    )?;
     let c = tex.channels;
     for (px, a) in solved.chunks_mut(c).zip(&alone.data) {
         px[c - 1] = *a;
@@ -205,6 +279,7 @@ fn alpha_apart(
         verdicts,
         closed: alone.closed,
         padded: alone.padded,
+        harm,
     }))
 }
 

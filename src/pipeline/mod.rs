@@ -109,7 +109,7 @@ pub struct SeamShare {
 }
 
 /// What was done with the seams: which were closed and which left as painted.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct SeamSummary {
     /// The jump (8-bit levels) up to which seams were closed; `null` with
     /// `erase_all`, which closes every seam.
@@ -122,6 +122,9 @@ pub struct SeamSummary {
     pub spared: usize,
     /// Gutter texels along the seams left, filled from their own chart.
     pub padded_texels: usize,
+    /// UV charts the erasure still changed under 30 dB, after sparing every
+    /// seam that touches them; empty when none.
+    pub repainted: Vec<ChartHarm>,
     /// For an erased alpha judged apart from the colour (its sides painted
     /// apart where the colour's agree, or the other way round): the same
     /// for alpha. Absent where alpha follows the colour's seams.
@@ -130,12 +133,68 @@ pub struct SeamSummary {
 }
 
 /// [`SeamSummary`]'s figures for alpha judged on its own.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct AlphaSeamSummary {
     pub closed: SeamShare,
     pub left: SeamShare,
     pub spared: usize,
     pub padded_texels: usize,
+    pub repainted: Vec<ChartHarm>,
+}
+
+/// A UV chart the erasure changed under [`HARM_PSNR_DB`]: which, how much,
+/// and why sparing seams did not keep it.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct ChartHarm {
+    /// The chart's number, in the order its first triangle comes in the model.
+    pub chart: u32,
+    pub texels: usize,
+    /// PSNR of the chart's texels against the input, in dB.
+    pub psnr: f64,
+    /// The chart's UV bounds, to find it in the atlas.
+    pub uv_min: [f64; 2],
+    pub uv_max: [f64; 2],
+    pub cause: HarmCause,
+}
+
+/// Why a chart was repainted although the job spares seams to keep charts.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum HarmCause {
+    /// `--erase-all` closes every seam and spares none.
+    EraseAll,
+    /// Global mode spreads the colour offset between charts over whole
+    /// charts, which is what it is for.
+    GlobalOffsets,
+    /// Every seam touching the chart was left apart; the erasure of the
+    /// seams near it, which spreads beyond their footprints, still reached it.
+    NearbySeams,
+}
+
+impl HarmCause {
+    fn of(opts: &ProcessOptions) -> HarmCause {
+        if opts.erase_all {
+            HarmCause::EraseAll
+        } else if opts.mode == crate::seam::erase::Mode::Global {
+            HarmCause::GlobalOffsets
+        } else {
+            HarmCause::NearbySeams
+        }
+    }
+
+    /// The reason, as a warning gives it.
+    fn says(self) -> &'static str {
+        match self {
+            HarmCause::EraseAll => "--erase-all closes every seam, whatever it costs the charts",
+            HarmCause::GlobalOffsets => {
+                "global mode spreads the colour offsets between charts over whole charts"
+            }
+            HarmCause::NearbySeams => {
+                "every seam touching it was left apart, and the erasure of the seams near it \
+                 still reaches it"
+            }
+        }
+    }
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize)]
@@ -355,7 +414,10 @@ fn harm_warnings(t: &TextureReport, opts: &ProcessOptions) -> Vec<String> {
             dds.and_then(|m| m.worst_chart_psnr),
         ),
     ];
-    let mut out: Vec<String> = chart_warning(t, "", versions, why).into_iter().collect();
+    let mut out: Vec<String> = repainted_warning(t, "", &t.seams.repainted)
+        .or_else(|| chart_warning(t, "", versions, why))
+        .into_iter()
+        .collect();
     if let Some(psnr) = t.erased.psnr.filter(|&p| p < CHANGE_PSNR_DB) {
         tracing::warn!(texture = %t.name, psnr, "texture changed below 40 dB");
         out.push(format!(
@@ -379,7 +441,11 @@ fn harm_warnings(t: &TextureReport, opts: &ProcessOptions) -> Vec<String> {
                 dds.and_then(|m| m.worst_chart_psnr),
             ),
         ];
-        out.extend(chart_warning(t, "the alpha of ", versions, why));
+        let named = t.seams.alpha.as_ref().map_or(&[][..], |a| &a.repainted[..]);
+        out.extend(
+            repainted_warning(t, "the alpha of ", named)
+                .or_else(|| chart_warning(t, "the alpha of ", versions, why)),
+        );
     }
     let alpha = t.alpha.as_ref().filter(|a| a.erased_seams);
     if let Some(psnr) = alpha
@@ -420,6 +486,49 @@ fn chart_warning(
         "texture {}: {of}{charts} UV chart(s) under {HARM_PSNR_DB} dB in the {what} \
          (worst {psnr:.1} dB){why}",
         t.name
+    ))
+}
+
+/// At most this many charts are named in one warning; the report's
+/// `seams.repainted` lists them all.
+const NAMED_CHARTS: usize = 4;
+
+/// The charts the erasure repainted, by name, figure and cause, as one
+/// warning; `of` says which channels (`""` for colour, `"the alpha of "`).
+fn repainted_warning(t: &TextureReport, of: &str, charts: &[ChartHarm]) -> Option<String> {
+    let worst = charts.first()?;
+    for c in charts {
+        tracing::warn!(
+            texture = %t.name,
+            channels = if of.is_empty() { "colour" } else { "alpha" },
+            chart = c.chart,
+            texels = c.texels,
+            psnr = c.psnr,
+            cause = ?c.cause,
+            "UV chart repainted below 30 dB"
+        );
+    }
+    let named: Vec<String> = charts
+        .iter()
+        .take(NAMED_CHARTS)
+        .map(|c| {
+            format!(
+                "chart {} ({} texels, UV {:.3}-{:.3} x {:.3}-{:.3}) at {:.1} dB",
+                c.chart, c.texels, c.uv_min[0], c.uv_max[0], c.uv_min[1], c.uv_max[1], c.psnr
+            )
+        })
+        .collect();
+    let more = match charts.len().saturating_sub(NAMED_CHARTS) {
+        0 => String::new(),
+        n => format!(" and {n} more (seams.repainted lists them)"),
+    };
+    Some(format!(
+        "texture {}: erasure changed {of}{} UV chart(s) under {HARM_PSNR_DB} dB against the \
+         input: {}{more}; {}",
+        t.name,
+        charts.len(),
+        named.join(", "),
+        worst.cause.says()
     ))
 }
 

@@ -15,6 +15,7 @@ use serde::Serialize;
 use super::alpha::{self, AlphaFormat, AlphaPlan, AlphaReport};
 use super::level::{
     encode_level, encode_regular, encode_seam_aware, erase_level, rgb, EncodedLevel, ErasedLevel,
+    Rung,
 };
 use super::measure::Measure;
 use super::{
@@ -111,7 +112,13 @@ pub(super) fn erase_texture<'a>(
     let span = tracing::info_span!("texture", image = b.image, name = %b.name);
     let _guard = span.enter();
     let plan = alpha::plan(b, opts.alpha);
-    let level0 = erase_level(b, &b.texture, opts, plan.is_some_and(|p| p.erase))?;
+    let level0 = erase_level(
+        b,
+        &b.texture,
+        opts,
+        plan.is_some_and(|p| p.erase),
+        Rung::Base,
+    )?;
     // The solver's working set is freed now and the encoder's has another
     // shape: given back rather than left as holes, the process's peak
     // follows the memory in use (see `heap`).
@@ -411,7 +418,7 @@ fn smaller_levels(
         return Ok(Vec::new());
     }
     let filtered = mips::downsample(above, b.wrap_s, b.wrap_t);
-    let level = erase_level(b, &filtered, opts, plan.is_some_and(|p| p.erase))?;
+    let level = erase_level(b, &filtered, opts, plan.is_some_and(|p| p.erase), Rung::Mip)?;
     drop(filtered);
     let (enc, below) = rayon::join(
         || encode_level(b, &level, opts, plan),
@@ -518,11 +525,13 @@ fn seam_summary(level: &ErasedLevel, opts: &ProcessOptions) -> SeamSummary {
         left: share(closed, false),
         spared: level.verdicts.spared,
         padded_texels: level.padded,
+        repainted: level.harm.clone(),
         alpha: level.alpha.as_ref().map(|a| AlphaSeamSummary {
             closed: share(&a.verdicts.closed, true),
             left: share(&a.verdicts.closed, false),
             spared: a.verdicts.spared,
             padded_texels: a.padded,
+            repainted: a.harm.clone(),
         }),
     }
 }

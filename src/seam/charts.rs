@@ -9,8 +9,9 @@
 use std::collections::HashMap;
 
 use super::grid::TexelGrid;
+use super::quadrature::{for_each_cell, Segment};
 use super::texels::for_each_texel_inside;
-use crate::model::UvTriangle;
+use crate::model::{SeamEdge, UvTriangle};
 
 /// UVs are compared after rounding to this many steps per unit: far finer
 /// than any texel, coarse enough that the same vertex written twice (by two
@@ -72,6 +73,61 @@ impl Charts {
         let c = self.of_texel[i as usize];
         (c != Self::NONE).then_some(c)
     }
+
+    /// The charts closing `edge` can change directly: those of its two
+    /// sides, and those of every texel the bilinear samples along either
+    /// half-edge read (a sliver chart under a seam's footprint is repainted
+    /// by the seam without being one of its sides). Sorted, without repeats.
+    pub fn touched_by(&self, grid: &TexelGrid, edge: &SeamEdge) -> Vec<u32> {
+        let mut out: Vec<u32> = edge
+            .triangles
+            .iter()
+            .filter_map(|&t| self.of_triangle.get(t as usize).copied())
+            .collect();
+        for half in [edge.a, edge.b] {
+            for_each_cell(Segment::from_uv(grid, half), |[cx, cy]| {
+                out.extend(
+                    grid.cell_corners(cx, cy)
+                        .iter()
+                        .filter_map(|&i| self.texel(i)),
+                );
+            });
+        }
+        out.sort_unstable();
+        out.dedup();
+        out
+    }
+
+    /// Texels and UV bounds (`[min, max]` of the triangles' UVs) of every chart.
+    pub fn extents(&self, triangles: &[UvTriangle]) -> Vec<ChartExtent> {
+        let mut out = vec![
+            ChartExtent {
+                texels: 0,
+                uv_min: [f64::INFINITY; 2],
+                uv_max: [f64::NEG_INFINITY; 2],
+            };
+            self.count
+        ];
+        for (t, &c) in triangles.iter().zip(&self.of_triangle) {
+            let e = &mut out[c as usize];
+            for uv in t.uvs {
+                e.uv_min = [e.uv_min[0].min(uv[0]), e.uv_min[1].min(uv[1])];
+                e.uv_max = [e.uv_max[0].max(uv[0]), e.uv_max[1].max(uv[1])];
+            }
+        }
+        for &c in self.of_texel.iter().filter(|&&c| c != Self::NONE) {
+            out[c as usize].texels += 1;
+        }
+        out
+    }
+}
+
+/// Where a chart lies: enough to find it in the atlas.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ChartExtent {
+    pub texels: usize,
+    pub uv_min: [f64; 2],
+    pub uv_max: [f64; 2],
 }
 
 fn find(parent: &mut [u32], mut i: u32) -> u32 {

@@ -23,7 +23,13 @@
 //! a chart on either side: after the erasure, every chart whose PSNR fell
 //! under [`HARM_PSNR_DB`](super::charts::HARM_PSNR_DB) has its edges of this
 //! middle zone left (*spared*), and the erasure runs again
-//! ([`SeamVerdicts::spare`]). A jump alone cannot tell a gradient painted
+//! ([`SeamVerdicts::spare`]). Should a chart still be repainted, every
+//! closed edge that touches it, by a side or by its bilinear footprint, is
+//! left as a last resort, the agreeing zone's included, and the erasure
+//! runs once more ([`SeamVerdicts::spare_touching`]): a chart shifted by
+//! eight levels or more costs more than the seam line it would close. What
+//! is still repainted after that is reported, chart by chart, with its
+//! cause. A jump alone cannot tell a gradient painted
 //! twice out of register (the cube example: 18–46 levels along one chart,
 //! all accidental) from a panel painted beside a frame (hand-painted
 //! vehicles and controllers: 16–48 levels, all on purpose); what closing
@@ -105,6 +111,36 @@ impl SeamVerdicts {
                 chart.is_some_and(|c| harmed.get(c as usize).copied().unwrap_or(false))
             });
             if *closed && *jump > ALWAYS_CLOSE && hurt {
+                *closed = false;
+                spared += 1;
+            }
+        }
+        self.spared += spared;
+        spared
+    }
+
+    /// The last resort for a chart that sparing the middle zone left
+    /// repainted: leaves every closed edge, whatever its jump, whose sides
+    /// or bilinear footprint touch a chart marked in `harmed`. Sides that
+    /// agree to within [`ALWAYS_CLOSE`] are closed by contract, but not at
+    /// the price of a chart: a seam line of a few levels is what the
+    /// erasure removes, a chart shifted by eight or more is what it must
+    /// never paint. Returns how many it left.
+    pub fn spare_touching(
+        &mut self,
+        grid: &TexelGrid,
+        seams: &SeamSet,
+        charts: &Charts,
+        harmed: &[bool],
+    ) -> usize {
+        let mut spared = 0;
+        for (s, closed) in seams.seams.iter().zip(&mut self.closed) {
+            if *closed
+                && charts
+                    .touched_by(grid, s)
+                    .iter()
+                    .any(|&c| harmed.get(c as usize).copied().unwrap_or(false))
+            {
                 *closed = false;
                 spared += 1;
             }
@@ -387,6 +423,87 @@ mod tests {
         let v = two_charts(|_| 0.2, |_| 0.2 + 100.0 / 255.0, &LOCAL);
         assert!(!v.closed[0], "{v:?}");
         assert!((v.jump[0] - 100.0).abs() < 1.0, "{v:?}");
+    }
+
+    /// [`two_charts`]'s quad, with a sliver chart of its own beside the
+    /// cut in chart `a`'s half of the atlas, under the cut's bilinear
+    /// footprint but no side of it.
+    fn quad_and_sliver() -> (TexelGrid, Vec<UvTriangle>) {
+        let grid = TexelGrid {
+            width: 64,
+            height: 64,
+            wrap_s: Wrap::ClampToEdge,
+            wrap_t: Wrap::ClampToEdge,
+        };
+        let tris = vec![
+            UvTriangle {
+                group: 0,
+                positions: [P[0], P[1], P[2]],
+                uvs: [[0.05, 0.05], [0.45, 0.05], [0.05, 0.45]],
+            },
+            UvTriangle {
+                group: 0,
+                positions: [P[1], P[3], P[2]],
+                uvs: [[0.95, 0.55], [0.95, 0.95], [0.55, 0.95]],
+            },
+            UvTriangle {
+                group: 0,
+                positions: [[5., 5., 5.], [6., 5., 5.], [5., 6., 5.]],
+                uvs: [[0.455, 0.05], [0.52, 0.05], [0.455, 0.12]],
+            },
+        ];
+        (grid, tris)
+    }
+
+    #[test]
+    fn a_chart_under_a_seams_footprint_is_touched_by_it() {
+        let (grid, tris) = quad_and_sliver();
+        let seams = find_seams(&tris, grid.width, grid.height);
+        let charts = Charts::new(&grid, &tris);
+        assert_eq!((seams.seams.len(), charts.count), (1, 3));
+        assert_eq!(charts.touched_by(&grid, &seams.seams[0]), vec![0, 1, 2]);
+        let far = UvTriangle {
+            uvs: [[0.6, 0.05], [0.7, 0.05], [0.6, 0.15]],
+            ..tris[2]
+        };
+        let tris = [tris[0], tris[1], far];
+        let charts = Charts::new(&grid, &tris);
+        assert_eq!(charts.touched_by(&grid, &seams.seams[0]), vec![0, 1]);
+    }
+
+    #[test]
+    fn only_the_last_resort_spares_an_agreeing_seam() {
+        let (grid, tris) = quad_and_sliver();
+        let seams = find_seams(&tris, grid.width, grid.height);
+        let charts = Charts::new(&grid, &tris);
+        let agreeing = || SeamVerdicts {
+            jump: vec![4.0],
+            closed: vec![true],
+            spared: 0,
+        };
+        // The middle zone's rule leaves sides within 16 levels closed,
+        // whatever it costs.
+        let mut v = agreeing();
+        assert_eq!(v.spare(&seams, &charts, &[true, false, false]), 0);
+        assert!(v.closed[0]);
+        // The last resort spares it for a harmed side chart, and for a
+        // harmed chart under its footprint, but for no other.
+        for harmed in [[true, false, false], [false, false, true]] {
+            let mut v = agreeing();
+            assert_eq!(v.spare_touching(&grid, &seams, &charts, &harmed), 1);
+            assert_eq!((v.closed[0], v.spared), (false, 1));
+        }
+        let mut v = agreeing();
+        let far = UvTriangle {
+            uvs: [[0.6, 0.05], [0.7, 0.05], [0.6, 0.15]],
+            ..tris[2]
+        };
+        let charts = Charts::new(&grid, &[tris[0], tris[1], far]);
+        assert_eq!(
+            v.spare_touching(&grid, &seams, &charts, &[false, false, true]),
+            0
+        );
+        assert!(v.closed[0]);
     }
 
     #[test]
