@@ -311,7 +311,7 @@ fn region<'a>(
     len: u64,
     what: &'static str,
 ) -> Result<&'a [u8], ContainerError> {
-    let end = off.checked_add(len).unwrap_or(u64::MAX);
+    let end = off.saturating_add(len);
     match (usize::try_from(off), usize::try_from(end)) {
         (Ok(o), Ok(e)) if e <= bytes.len() => Ok(&bytes[o..e]),
         _ => Err(ContainerError::Truncated {
@@ -354,7 +354,7 @@ fn check_dfd(
         return bad(format!("version {version}; 2 expected"));
     }
     if block_len < DFD_BLOCK_LEN
-        || (block_len - DFD_BLOCK_LEN) % DFD_SAMPLE_LEN != 0
+        || !(block_len - DFD_BLOCK_LEN).is_multiple_of(DFD_SAMPLE_LEN)
         || 4 + block_len > dfd.len()
     {
         return bad(format!("descriptor block size {block_len} is inconsistent"));
@@ -544,7 +544,7 @@ pub fn read_ktx2(bytes: &[u8]) -> Result<EncodedTexture, ContainerError> {
                 "byteOffset {offset} lies inside the header and level index"
             )));
         }
-        if offset % align as u64 != 0 {
+        if !offset.is_multiple_of(align as u64) {
             return Err(problem(format!(
                 "byteOffset {offset} is not a multiple of {align}"
             )));
