@@ -205,16 +205,20 @@ fn every_format_colour_space_chain_and_zstd_round_trips() {
     }
 }
 
-/// What ktx-parse makes of each file, as JSON: header, DFD, key/values and
-/// the stored bytes of each level (base64).
+/// What ktx-parse makes of each file, as JSON: header, DFD, key/values,
+/// the stored bytes of each level (base64), and whether its writer, given
+/// what it read, lays out the very same file.
 fn ktx_parse(files: &[PathBuf]) -> Vec<serde_json::Value> {
     let script = r#"
 const { pathToFileURL } = require('url');
-import(pathToFileURL(require.resolve('ktx-parse')).href).then(({ read }) => {
+import(pathToFileURL(require.resolve('ktx-parse')).href).then(({ read, write }) => {
   const fs = require('fs');
   const out = process.argv.slice(1).map((f) => {
-    const c = read(new Uint8Array(fs.readFileSync(f)));
+    const bytes = fs.readFileSync(f);
+    const c = read(new Uint8Array(bytes));
+    const again = Buffer.from(write(c, { keepWriter: true }));
     return {
+      rewritesIdentically: Buffer.compare(again, bytes) === 0,
       vkFormat: c.vkFormat, typeSize: c.typeSize, pixelWidth: c.pixelWidth,
       pixelHeight: c.pixelHeight, pixelDepth: c.pixelDepth, layerCount: c.layerCount,
       faceCount: c.faceCount, levelCount: c.levelCount,
@@ -299,6 +303,7 @@ fn ktx_parse_reads_our_ktx2_files() {
             (tex.format, tex.color_space, *punched),
             "{what}"
         );
+        assert_eq!(c["rewritesIdentically"], true, "{what}");
         assert_eq!(n(&c["typeSize"]), 1);
         assert_eq!((n(&c["pixelWidth"]), n(&c["pixelHeight"])), (211, 97));
         assert_eq!(

@@ -290,8 +290,9 @@ mod tests {
             // Linear size: level 0's bytes, 16 a block.
             assert_eq!(u32_at(&bytes, 20), 4 * 2 * 16);
             assert_eq!(u32_at(&bytes, 28), 4);
-            let sizes = [(4 * 2), (2 * 1), 1, 1];
-            assert_eq!(bytes.len(), 148 + sizes.iter().sum::<usize>() * 16);
+            // Blocks of 13x6, 6x3, 3x1, 1x1.
+            let blocks = [8, 2, 1, 1];
+            assert_eq!(bytes.len(), 148 + blocks.iter().sum::<usize>() * 16);
             let back = read_dds(&bytes).unwrap();
             assert_eq!(back.header, DdsHeader::Dx10);
             assert_eq!(back.texture, t);
