@@ -29,7 +29,8 @@
 //! Software's `ktx create` writes it: colorModel KHR_DF_MODEL_BC1A (128),
 //! BC3 (130) or BC7 (134); primaries BT709; transfer sRGB (2) or linear
 //! (1); flags alpha-straight; texelBlockDimension 3, 3, 0, 0 (a 4×4 block,
-//! stored minus one); bytesPlane0 the block's bytes. Samples, each with
+//! stored minus one); bytesPlane0 the block's bytes, supercompressed or
+//! not (the DFD describes the inflated blocks). Samples, each with
 //! positions 0, sampleLower 0 and sampleUpper 0xFFFFFFFF: BC1, one of 64
 //! bits, channel BC1A_COLOR (0), or BC1A_ALPHAPRESENT (1) for the RGBA
 //! formats; BC3, two of 64 bits, BC3_ALPHA (15) at bit 0 then BC3_COLOR
@@ -324,11 +325,15 @@ fn region<'a>(
 
 /// Checks the basic descriptor block against the vkFormat: the fields a
 /// decoder relies on (model, transfer, block size and bytes).
+/// Supercompressed files from older libktx versions are "unsized"
+/// (bytesPlane0 0), which its current version (and this writer) no longer
+/// writes but still reads: so are they here.
 fn check_dfd(
     dfd: &[u8],
     format: BlockFormat,
     color_space: ColorSpace,
     alpha: bool,
+    scheme: u32,
 ) -> Result<(), ContainerError> {
     let bad = |s: String| Err(ContainerError::Dfd(s));
     if dfd.len() < 4 + DFD_BLOCK_LEN {
@@ -377,7 +382,8 @@ fn check_dfd(
         ));
     }
     let bytes_plane0 = dfd[20];
-    if usize::from(bytes_plane0) != format.block_bytes() {
+    let unsized_ok = scheme != SUPERCOMPRESSION_NONE && bytes_plane0 == 0;
+    if usize::from(bytes_plane0) != format.block_bytes() && !unsized_ok {
         return bad(format!(
             "bytesPlane0 {bytes_plane0}; {format} blocks are {} bytes",
             format.block_bytes()
@@ -508,7 +514,7 @@ pub fn read_ktx2(bytes: &[u8]) -> Result<EncodedTexture, ContainerError> {
         header(10).into(),
         "KTX2 data format descriptor",
     )?;
-    check_dfd(dfd, format, color_space, alpha)?;
+    check_dfd(dfd, format, color_space, alpha, scheme)?;
     let kvd = region(
         bytes,
         header(11).into(),
@@ -719,6 +725,21 @@ mod tests {
         assert_eq!(read_ktx2(&bytes).unwrap(), t);
         t.color_space = ColorSpace::Linear;
         assert_eq!(u32_at(&write_ktx2(&t, Some(3)).unwrap(), 12), 133);
+    }
+
+    #[test]
+    fn unsized_dfd_is_read_only_when_supercompressed() {
+        let t = texture(BlockFormat::Bc1, ColorSpace::Srgb, 8, 8);
+        for zstd in [None, Some(1)] {
+            let mut b = write_ktx2(&t, zstd).unwrap();
+            let bytes_plane0 = u32_at(&b, 12 + 4 * 9) as usize + 20;
+            assert_eq!(b[bytes_plane0], 8);
+            b[bytes_plane0] = 0;
+            match zstd {
+                Some(_) => assert_eq!(read_ktx2(&b).unwrap(), t),
+                None => assert!(matches!(read_ktx2(&b), Err(ContainerError::Dfd(_)))),
+            }
+        }
     }
 
     #[test]
