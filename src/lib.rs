@@ -3,6 +3,7 @@
 //! Data flows one way: [`model`] (load glTF, bind textures, weld, find seams)
 //! → [`seam`] (exact metric, erasure) → [`bc1`] (encode, seam-aware encode,
 //! write DDS) → [`pipeline`] (one job: model in, files and report out);
+//! [`container`] lays encoded blocks out as DDS and KTX2 files;
 //! [`budget`] decides from a model's plan whether a job may run at all;
 //! [`service`] runs the pipeline behind HTTP; [`batch`] runs many models
 //! here, or through [`client`] on a server.
@@ -11,6 +12,7 @@ pub mod batch;
 pub mod bc1;
 pub mod budget;
 pub mod client;
+pub mod container;
 pub mod heap;
 pub mod mips;
 pub mod model;

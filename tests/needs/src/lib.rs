@@ -18,7 +18,7 @@ include!(concat!(env!("OUT_DIR"), "/found.rs"));
 /// Marks the test ignored, with what to install, unless every tool named
 /// is here. Put it above `#[test]` (or `#[tokio::test]`), which reads the
 /// mark. The tools are those of `probe::TOOLS`, by key: `python`,
-/// `texture2ddecoder`, `schemathesis`, `gltf_validator`, `chromium`,
+/// `texture2ddecoder`, `schemathesis`, `gltf_validator`, `ktx_parse`, `chromium`,
 /// `postgres`, `seaweedfs`, `tmpfs`.
 #[proc_macro_attribute]
 pub fn needs(args: TokenStream, item: TokenStream) -> TokenStream {

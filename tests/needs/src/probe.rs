@@ -37,6 +37,11 @@ pub const TOOLS: &[Tool] = &[
         install: "npm install --prefix DIR gltf-validator; export NODE_PATH=DIR/node_modules",
     },
     Tool {
+        key: "ktx_parse",
+        what: "node with the npm package ktx-parse on NODE_PATH",
+        install: "npm install --prefix DIR ktx-parse; export NODE_PATH=DIR/node_modules",
+    },
+    Tool {
         key: "chromium",
         what: "chromium",
         install: "apt-get install chromium",
@@ -82,6 +87,14 @@ fn probe(key: &str) -> bool {
         "texture2ddecoder" => runs(&["python3", "-c", "import texture2ddecoder, PIL"]),
         "schemathesis" => on_path("schemathesis").is_some(),
         "gltf_validator" => runs(&["node", "-e", "require('gltf-validator')"]),
+        // An ES module: found through NODE_PATH by require.resolve, loaded
+        // by import(), as tests/containers.rs does.
+        "ktx_parse" => runs(&[
+            "node",
+            "-e",
+            "import(require('url').pathToFileURL(require.resolve('ktx-parse')).href)\
+             .then(m => process.exit(typeof m.read === 'function' ? 0 : 1), () => process.exit(1))",
+        ]),
         "chromium" => on_path("chromium").is_some(),
         "postgres" => postgres_bin().is_some(),
         "seaweedfs" => weed_binary().is_some(),
