@@ -10,6 +10,7 @@
 
 pub mod batch;
 pub mod bc1;
+pub mod bc7;
 pub mod budget;
 pub mod client;
 pub mod container;

@@ -1,0 +1,1 @@
+//! Seam-aware BC7.
