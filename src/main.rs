@@ -16,8 +16,8 @@ use seamstress::client::retry::RetryParams;
 use seamstress::client::{Remote, RemoteParams};
 use seamstress::model::LoadOptions;
 use seamstress::pipeline::{
-    self, AlphaOption, Format, JobSettings, Method, NoSink, ProcessOptions, Resize, Target,
-    DEFAULT_SEAM_TOLERANCE, DEFAULT_SEAM_WEIGHT,
+    self, AlphaOption, Container, Format, JobSettings, Method, NoSink, ProcessOptions, Resize,
+    Target, DEFAULT_SEAM_TOLERANCE, DEFAULT_SEAM_WEIGHT,
 };
 use seamstress::plural::count;
 use seamstress::seam::erase::Mode;
@@ -157,13 +157,29 @@ struct OptionArgs {
     /// seam, integrated exactly) or masking (at sampled points).
     #[arg(long, value_parser = word::<Method>, default_value = "erase")]
     method: Method,
-    /// The files written for each texture: dds (a BC1 DDS and the erased
-    /// PNG) or png (the erased PNG only).
-    #[arg(long, value_parser = word::<Format>, default_value = "dds")]
+    /// The block compression written for each texture besides the erased
+    /// PNG: bc1 (BC3 where alpha blends; `dds` is its older name), bc7, or
+    /// png (the erased PNG only).
+    #[arg(long, value_parser = word::<Format>, default_value = "bc1")]
     format: Format,
     /// BC1 encoder effort: fast, default or best.
     #[arg(long, value_parser = word::<Level>, default_value = "default")]
     bc1_level: Level,
+    /// BC7 encoder effort: fast, default or best.
+    #[arg(long, value_parser = word::<Level>, default_value = "default")]
+    bc7_level: Level,
+    /// The file the blocks go in: dds (referenced from the rewritten model)
+    /// or ktx2.
+    #[arg(long, value_parser = word::<Container>, default_value = "dds")]
+    container: Container,
+    /// Supercompress KTX2 files with Zstandard at this level (1-22).
+    #[arg(
+        long,
+        value_name = "LEVEL",
+        default_value_t = 0,
+        hide_default_value = true
+    )]
+    zstd: u8,
     /// Store the regular BC1 encoding instead of the seam-aware one.
     #[arg(long)]
     no_seam_aware: bool,
@@ -222,6 +238,9 @@ impl OptionArgs {
             method: self.method,
             format: self.format,
             bc1_level: self.bc1_level,
+            bc7_level: self.bc7_level,
+            container: self.container,
+            zstd: self.zstd,
             seam_aware: !self.no_seam_aware,
             seam_weight: self.seam_weight,
             // The two flags override each other: the last one given holds.

@@ -14,11 +14,16 @@
 //!   (not erased: the material does not use it, some other reader may).
 //!
 //! `--alpha drop|bc1a|bc3` overrides the choice.
+//!
+//! BC7 (`--format bc7`) carries alpha in its own blocks: whatever alpha is
+//! in use is kept there (`bc7`), erased along the seams where the material
+//! blends, as for BC3; `--alpha drop` still drops it.
 
 use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
 
+use super::Format;
 use crate::model::{AlphaUse, Texture, TextureBinding};
 
 /// The `--alpha` option.
@@ -47,6 +52,8 @@ pub enum AlphaFormat {
     Bc1a,
     /// BC3: interpolated alpha.
     Bc3,
+    /// BC7: alpha in the same blocks as the colour.
+    Bc7,
 }
 
 /// One texture's alpha handling, decided before any work.
@@ -62,7 +69,7 @@ pub struct AlphaPlan {
 
 /// What to do with `b`'s alpha; `None` when there is none to keep (no
 /// alpha channel, or an opaque image under opaque materials).
-pub fn plan(b: &TextureBinding, option: AlphaOption) -> Option<AlphaPlan> {
+pub fn plan(b: &TextureBinding, option: AlphaOption, format: Format) -> Option<AlphaPlan> {
     let values = channel(&b.texture)?;
     let below_one = values.iter().any(|&a| a < 1.0);
     let material = b.alpha;
@@ -86,6 +93,14 @@ pub fn plan(b: &TextureBinding, option: AlphaOption) -> Option<AlphaPlan> {
         material,
     };
     let blends = material == AlphaUse::Blend;
+    if format == Format::Bc7 && option != AlphaOption::Drop {
+        return Some(AlphaPlan {
+            format: AlphaFormat::Bc7,
+            cutoff: mask_cutoff,
+            erase: blends,
+            material,
+        });
+    }
     Some(match option {
         AlphaOption::Drop => AlphaPlan {
             format: AlphaFormat::Dropped,

@@ -9,6 +9,8 @@
 //! into its file store, so both serve identical bytes.
 
 pub mod alpha;
+mod bc7_level;
+mod file;
 pub mod job;
 mod level;
 mod measure;
@@ -20,7 +22,7 @@ mod texture;
 pub use alpha::{AlphaFormat, AlphaOption, AlphaReport};
 pub use job::{admit, run_job, JobError, JobInput, JobOutput, JobSettings, JobTimings};
 pub use options::{
-    Format, Method, OptionPatch, OptionsError, ProcessOptions, DEFAULT_SEAM_TOLERANCE,
+    Container, Format, Method, OptionPatch, OptionsError, ProcessOptions, DEFAULT_SEAM_TOLERANCE,
     DEFAULT_SEAM_WEIGHT,
 };
 pub use progress::{NoSink, Progress, Sink, Stop};
@@ -200,6 +202,9 @@ impl HarmCause {
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct Files {
     pub dds: Option<String>,
+    /// `<name>.ktx2`, with `container` `ktx2` (then `dds` is null).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub ktx2: Option<String>,
     pub erased: String,
     /// `<name>.seams.png`, when pictures were asked for.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -229,6 +234,13 @@ pub struct TextureReport {
     pub bc1_seam_aware: Option<Metrics>,
     /// The decoders the DDS's seam-aware encoding was made for.
     pub bc1_target: Option<Target>,
+    /// With `format` `bc7`: the regular BC7 encoding of the erased texture
+    /// (mip level 0). BC7 decodes exactly, the same on every GPU.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub bc7: Option<Metrics>,
+    /// What the file holds (mip level 0), when seam-aware encoding is on.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub bc7_seam_aware: Option<Metrics>,
     pub files: Files,
     pub timings_ms: Timings,
     pub solver: EraseStats,

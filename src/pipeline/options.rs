@@ -32,12 +32,38 @@ pub enum Method {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Format {
-    /// A BC1 DDS file and the erased PNG.
+    /// BC1 (BC3 or BC1 with one-bit alpha where alpha is kept). `dds` is
+    /// its name from before BC7, when the format and the file were one.
     #[default]
-    Dds,
+    #[serde(alias = "dds")]
+    Bc1,
+    /// BC7, colour and alpha in one format.
+    Bc7,
     /// The erased PNG only.
     Png,
 }
+
+impl Format {
+    /// Whether the format writes a block-compressed file.
+    pub fn compressed(self) -> bool {
+        self != Format::Png
+    }
+}
+
+/// The file block-compressed textures are written in.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Container {
+    /// DirectDraw Surface, referenced from the rewritten model through
+    /// `MSFT_texture_dds`.
+    #[default]
+    Dds,
+    /// KTX 2.0, optionally Zstandard-supercompressed (`zstd`).
+    Ktx2,
+}
+
+/// The highest Zstandard level.
+pub const MAX_ZSTD_LEVEL: u8 = 22;
 
 /// Every option of a job, decided.
 ///
@@ -51,6 +77,15 @@ pub struct ProcessOptions {
     pub method: Method,
     pub format: Format,
     pub bc1_level: Level,
+    /// BC7 encoder effort (with `format` `bc7`).
+    #[serde(default)]
+    pub bc7_level: Level,
+    /// The file the blocks are written in.
+    #[serde(default)]
+    pub container: Container,
+    /// Zstandard supercompression level of a KTX2 file, 1–22; 0 for none.
+    #[serde(default)]
+    pub zstd: u8,
     pub seam_aware: bool,
     pub seam_weight: f64,
     /// Write the whole mip chain, each level erased and encoded on its own.
@@ -104,8 +139,11 @@ impl Default for ProcessOptions {
         ProcessOptions {
             mode: Mode::Local,
             method: Method::Erase,
-            format: Format::Dds,
+            format: Format::Bc1,
             bc1_level: Level::Default,
+            bc7_level: Level::Default,
+            container: Container::Dds,
+            zstd: 0,
             seam_aware: true,
             seam_weight: DEFAULT_SEAM_WEIGHT,
             mips: true,
@@ -148,7 +186,27 @@ impl ProcessOptions {
             }
         };
         non_negative("seam_weight", self.seam_weight, "number")?;
-        non_negative("seam_tolerance", self.seam_tolerance, "number of levels")
+        non_negative("seam_tolerance", self.seam_tolerance, "number of levels")?;
+        if self.zstd > MAX_ZSTD_LEVEL {
+            return Err(OptionsError(format!(
+                "zstd must be a Zstandard level from 1 to {MAX_ZSTD_LEVEL} (0: none), not {}",
+                self.zstd
+            )));
+        }
+        if self.zstd > 0 && self.container != Container::Ktx2 {
+            return Err(OptionsError(
+                "zstd supercompresses KTX2 files: it needs container ktx2".into(),
+            ));
+        }
+        if self.format == Format::Bc7 && matches!(self.alpha, AlphaOption::Bc1a | AlphaOption::Bc3)
+        {
+            return Err(OptionsError(format!(
+                "alpha {}: that is a BC1 choice; BC7 keeps alpha in its own blocks \
+                 (alpha auto) or drops it (alpha drop)",
+                serde_json::to_value(self.alpha).unwrap_or_default()
+            )));
+        }
+        Ok(())
     }
 
     /// The options' JSON object, the form every cache and the report key on.

@@ -13,18 +13,22 @@ use std::time::Instant;
 use serde::Serialize;
 
 use super::alpha::{self, AlphaFormat, AlphaPlan, AlphaReport};
+use super::bc7_level::{self, Bc7Level};
+use super::file::{texture_file, Shipped};
 use super::level::{
     encode_level, encode_regular, encode_seam_aware, erase_level, rgb, EncodedLevel, ErasedLevel,
     Rung,
 };
 use super::measure::Measure;
+use super::Container;
 use super::{
     AlphaSeamSummary, Files, Format, Metrics, OutputFile, PipelineError, ProcessOptions, SeamShare,
     SeamSummary, TextureReport,
 };
 use crate::bc1::alpha::decode_alpha_image;
-use crate::bc1::dds::{write_dds, DdsHeaderKind, MipLevel};
+use crate::bc1::dds::MipLevel;
 use crate::bc1::{self, Block, Decoder};
+use crate::bc7;
 use crate::mips;
 use crate::model::{Texture, TextureBinding};
 use crate::picture::{seams_png, SeamPicture};
@@ -111,7 +115,7 @@ pub(super) fn erase_texture<'a>(
     let b = fitted.as_ref().map_or(original, |f| &f.0);
     let span = tracing::info_span!("texture", image = b.image, name = %b.name);
     let _guard = span.enter();
-    let plan = alpha::plan(b, opts.alpha);
+    let plan = alpha::plan(b, opts.alpha, opts.format);
     let level0 = erase_level(
         b,
         &b.texture,
@@ -167,7 +171,7 @@ pub(super) fn finish_texture(
     };
     let alphas =
         plan.and_then(|p| Some((p, alpha::channel(tex)?, alpha::channel(&level0.stored)?)));
-    let dds = opts.format == Format::Dds;
+    let compressed = opts.format.compressed();
 
     let input_rgb = rgb(tex);
     let erased_rgb = rgb(&level0.stored);
@@ -182,15 +186,14 @@ pub(super) fn finish_texture(
     let t = Instant::now();
     let (first, side) = rayon::join(
         || {
-            dds.then(|| encode_level0(b, level0, opts, plan.as_ref(), &figures))
+            compressed
+                .then(|| encode_level0(b, level0, opts, plan.as_ref(), &figures))
                 .transpose()
         },
         || Beside::run(b, level0, &measure, alphas.as_ref(), opts, plan.as_ref()),
     );
     let (first, side) = (first?, side?);
-    let (encode_ms, seam_aware_ms) = first
-        .as_ref()
-        .map_or((0, 0), |f| (f.enc.encode_ms, f.searched_ms));
+    let (encode_ms, seam_aware_ms) = first.as_ref().map_or((0, 0), Level0::timings);
     let beside_wait = ms_since(t).saturating_sub(encode_ms + seam_aware_ms);
 
     let erased_name = format!("{}.erased.png", b.name);
@@ -212,8 +215,11 @@ pub(super) fn finish_texture(
         bc1: None,
         bc1_seam_aware: None,
         bc1_target: None,
+        bc7: None,
+        bc7_seam_aware: None,
         files: Files {
             dds: None,
+            ktx2: None,
             erased: erased_name,
             seams: None,
         },
@@ -232,25 +238,63 @@ pub(super) fn finish_texture(
     };
 
     let mut decoded = None;
-    if let Some(Level0 { enc, regular, .. }) = first {
+    if let Some(first) = first {
         let t = Instant::now();
-        let shipped = figures.of(&enc.shipped, enc.clear.as_deref())?;
-        report.bc1 = Some(regular.metrics);
-        if opts.seam_aware {
-            report.bc1_seam_aware = Some(shipped.metrics);
-            report.bc1_target = Some(opts.decoder);
-        }
-        if let (Some(r), Some((p, input, erased))) = (report.alpha.as_mut(), alphas.as_ref()) {
-            let alpha_figures = |regular| {
-                dds_alpha(&enc, p, tex, regular).map(|per| {
-                    per.into_iter()
-                        .map(|(d, a)| (d.name(), measure.alpha(p, &a, input, Some(erased))))
-                        .collect()
+        let level = match first {
+            Level0::Bc1 { enc, regular, .. } => {
+                let shipped = figures.of(&enc.shipped, enc.clear.as_deref())?;
+                report.bc1 = Some(regular.metrics);
+                if opts.seam_aware {
+                    report.bc1_seam_aware = Some(shipped.metrics);
+                    report.bc1_target = Some(opts.decoder);
+                }
+                if let (Some(r), Some((p, input, erased))) =
+                    (report.alpha.as_mut(), alphas.as_ref())
+                {
+                    let alpha_figures = |regular| {
+                        dds_alpha(&enc, p, tex, regular).map(|per| {
+                            per.into_iter()
+                                .map(|(d, a)| (d.name(), measure.alpha(p, &a, input, Some(erased))))
+                                .collect()
+                        })
+                    };
+                    r.regular = alpha_figures(true);
+                    r.dds = alpha_figures(false);
+                }
+                decoded = Some((regular.ideal, shipped.ideal));
+                Shipped::Bc1(MipLevel {
+                    width: tex.width as u32,
+                    height: tex.height as u32,
+                    blocks: enc.shipped,
+                    alpha: enc.alpha_shipped,
                 })
-            };
-            r.regular = alpha_figures(true);
-            r.dds = alpha_figures(false);
-        }
+            }
+            Level0::Bc7 { enc, regular, .. } => {
+                let shipped = figures.of_bc7(&enc.shipped)?;
+                report.bc7 = Some(regular.metrics);
+                if opts.seam_aware {
+                    report.bc7_seam_aware = Some(shipped.metrics);
+                }
+                if let (Some(r), Some((p, input, erased))) =
+                    (report.alpha.as_mut(), alphas.as_ref())
+                {
+                    if p.format == AlphaFormat::Bc7 {
+                        let figures = |a: &[f32]| {
+                            let m = measure.alpha(p, a, input, Some(erased));
+                            Some([(BC7_DECODING, m)].into_iter().collect())
+                        };
+                        r.regular = figures(&regular.alpha);
+                        r.dds = figures(&shipped.alpha);
+                    }
+                }
+                decoded = Some((regular.ideal, shipped.ideal));
+                Shipped::Bc7 {
+                    width: tex.width as u32,
+                    height: tex.height as u32,
+                    blocks: enc.shipped,
+                }
+            }
+        };
         report.timings_ms.metrics = ms_since(t);
         tracing::info!(
             encode_ms,
@@ -260,21 +304,15 @@ pub(super) fn finish_texture(
         );
 
         let t = Instant::now();
-        let dds_name = format!("{}.dds", b.name);
-        let mut levels = vec![MipLevel {
-            width: tex.width as u32,
-            height: tex.height as u32,
-            blocks: enc.shipped,
-            alpha: enc.alpha_shipped,
-        }];
+        let mut levels = vec![level];
         levels.extend(side.smaller);
-        files.push(OutputFile {
-            name: dds_name.clone(),
-            bytes: dds_file(b, &levels, opts)?,
-        });
-        report.files.dds = Some(dds_name);
+        let (name, bytes) = texture_file(b, levels, opts)?;
+        match opts.container {
+            Container::Dds => report.files.dds = Some(name.clone()),
+            Container::Ktx2 => report.files.ktx2 = Some(name.clone()),
+        }
+        files.push(OutputFile { name, bytes });
         report.timings_ms.dds = ms_since(t);
-        decoded = Some((regular.ideal, shipped.ideal));
     }
     if opts.pictures {
         let t = Instant::now();
@@ -305,11 +343,32 @@ pub(super) fn finish_texture(
 }
 
 /// Level 0 encoded, with the regular encoding's figures.
-struct Level0 {
-    enc: EncodedLevel,
-    regular: Measured,
-    /// The seam-aware search's time, with the regular figures beside it.
-    searched_ms: u64,
+enum Level0 {
+    Bc1 {
+        enc: EncodedLevel,
+        regular: Measured,
+        /// The seam-aware search's time, with the regular figures beside it.
+        searched_ms: u64,
+    },
+    Bc7 {
+        enc: Bc7Level,
+        regular: Measured,
+        searched_ms: u64,
+    },
+}
+
+impl Level0 {
+    /// The regular encoding's and the seam-aware search's milliseconds.
+    fn timings(&self) -> (u64, u64) {
+        match self {
+            Level0::Bc1 {
+                enc, searched_ms, ..
+            } => (enc.encode_ms, *searched_ms),
+            Level0::Bc7 {
+                enc, searched_ms, ..
+            } => (enc.encode_ms, *searched_ms),
+        }
+    }
 }
 
 /// Level 0's regular encoding, then its seam-aware search with the regular
@@ -321,6 +380,24 @@ fn encode_level0(
     plan: Option<&AlphaPlan>,
     figures: &Figures<'_>,
 ) -> Result<Level0, PipelineError> {
+    if opts.format == Format::Bc7 {
+        let (regular, encode_ms) = bc7_level::encode_regular(b, level0, opts, plan)?;
+        let t = Instant::now();
+        let (shipped, regular_figures) = rayon::join(
+            || bc7_level::encode_seam_aware(b, level0, &regular, opts, plan),
+            || figures.of_bc7(&regular),
+        );
+        let ((shipped, seam_aware_ms), regular_figures) = (shipped?, regular_figures?);
+        return Ok(Level0::Bc7 {
+            searched_ms: ms_since(t),
+            enc: Bc7Level {
+                shipped,
+                encode_ms,
+                seam_aware_ms,
+            },
+            regular: regular_figures,
+        });
+    }
     let regular = encode_regular(b, level0, opts, plan)?;
     let t = Instant::now();
     let (shipped, regular_figures) = rayon::join(
@@ -328,7 +405,7 @@ fn encode_level0(
         || figures.of(&regular.blocks, regular.clear.as_deref()),
     );
     let (shipped, regular_figures) = (shipped?, regular_figures?);
-    Ok(Level0 {
+    Ok(Level0::Bc1 {
         searched_ms: ms_since(t),
         enc: EncodedLevel::new(regular, shipped),
         regular: regular_figures,
@@ -341,8 +418,9 @@ struct Beside {
     input: Metrics,
     erased: Metrics,
     alpha: Option<AlphaReport>,
-    /// Mip levels 1 and smaller, encoded (empty without `mips` or a DDS).
-    smaller: Vec<MipLevel>,
+    /// Mip levels 1 and smaller, encoded (empty without `mips` or a
+    /// compressed format).
+    smaller: Vec<Shipped>,
     timings: BesideTimings,
 }
 
@@ -360,7 +438,7 @@ impl Beside {
         let (smaller, (png, input, erased, alpha, png_ms, metrics_ms)) = rayon::join(
             || {
                 let t = Instant::now();
-                let smaller = if opts.mips && opts.format == Format::Dds {
+                let smaller = if opts.mips && opts.format.compressed() {
                     let count = mips::chain_len(tex.width, tex.height);
                     smaller_levels(b, &level0.float, 1, count, opts, plan)
                 } else {
@@ -413,7 +491,7 @@ fn smaller_levels(
     count: usize,
     opts: &ProcessOptions,
     plan: Option<&AlphaPlan>,
-) -> Result<Vec<MipLevel>, PipelineError> {
+) -> Result<Vec<Shipped>, PipelineError> {
     if k >= count {
         return Ok(Vec::new());
     }
@@ -421,27 +499,54 @@ fn smaller_levels(
     let level = erase_level(b, &filtered, opts, plan.is_some_and(|p| p.erase), Rung::Mip)?;
     drop(filtered);
     let (enc, below) = rayon::join(
-        || encode_level(b, &level, opts, plan),
+        || encode_mip(b, &level, opts, plan),
         || smaller_levels(b, &level.float, k + 1, count, opts, plan),
     );
-    let (enc, mut below) = (enc?, below?);
+    let ((shipped, encode_ms, seam_aware_ms), mut below) = (enc?, below?);
     tracing::debug!(
         level = k,
         width = level.grid.width,
         erase_ms = level.erase_ms,
-        encode_ms = enc.encode_ms,
-        seam_aware_ms = enc.seam_aware_ms,
+        encode_ms,
+        seam_aware_ms,
         "mip level encoded"
     );
-    let mut out = vec![MipLevel {
-        width: level.grid.width as u32,
-        height: level.grid.height as u32,
-        blocks: enc.shipped,
-        alpha: enc.alpha_shipped,
-    }];
+    let mut out = vec![shipped];
     out.append(&mut below);
     Ok(out)
 }
+
+/// A mip level encoded in the job's format: its blocks, and the regular
+/// encoding's and the seam-aware search's milliseconds.
+fn encode_mip(
+    b: &TextureBinding,
+    level: &ErasedLevel,
+    opts: &ProcessOptions,
+    plan: Option<&AlphaPlan>,
+) -> Result<(Shipped, u64, u64), PipelineError> {
+    let (width, height) = (level.grid.width as u32, level.grid.height as u32);
+    if opts.format == Format::Bc7 {
+        let enc = bc7_level::encode_level(b, level, opts, plan)?;
+        let shipped = Shipped::Bc7 {
+            width,
+            height,
+            blocks: enc.shipped,
+        };
+        return Ok((shipped, enc.encode_ms, enc.seam_aware_ms));
+    }
+    let enc = encode_level(b, level, opts, plan)?;
+    let shipped = Shipped::Bc1(MipLevel {
+        width,
+        height,
+        blocks: enc.shipped,
+        alpha: enc.alpha_shipped,
+    });
+    Ok((shipped, enc.encode_ms, enc.seam_aware_ms))
+}
+
+/// The key of a BC7 encoding's alpha figures: one decoding, exact on
+/// every GPU, where BC1's alpha has one per decoder.
+const BC7_DECODING: &str = "exact";
 
 /// Level 0's encodings decoded and measured.
 struct Figures<'a> {
@@ -456,6 +561,8 @@ struct Figures<'a> {
 struct Measured {
     metrics: Metrics,
     ideal: Vec<f32>,
+    /// A BC7 encoding's decoded alpha (empty for BC1).
+    alpha: Vec<f32>,
 }
 
 impl Figures<'_> {
@@ -499,7 +606,22 @@ impl Figures<'_> {
             per.insert(d.name(), figures);
         }
         metrics.decoders = Some(per);
-        Ok(Measured { metrics, ideal })
+        Ok(Measured {
+            metrics,
+            ideal,
+            alpha: Vec::new(),
+        })
+    }
+
+    /// The figures of a BC7 encoding of level 0: one decoding, exact.
+    fn of_bc7(&self, blocks: &[bc7::Block]) -> Result<Measured, PipelineError> {
+        let (rgb, alpha) = bc7_level::decode(self.name, blocks, self.tex.width, self.tex.height)?;
+        let metrics = self.measure.against(&rgb, 3, self.input_rgb);
+        Ok(Measured {
+            metrics,
+            ideal: rgb,
+            alpha,
+        })
     }
 }
 
@@ -553,24 +675,10 @@ fn dds_alpha(
     let per = |d: Decoder| match plan.format {
         AlphaFormat::Bc3 => Some(decode_alpha_image(alpha, w, h, d)),
         AlphaFormat::Bc1a => Some(bc1::punch::punch_alpha(colour, w, h)),
-        AlphaFormat::Dropped => None,
+        AlphaFormat::Dropped | AlphaFormat::Bc7 => None,
     };
     Decoder::ALL
         .into_iter()
         .map(|d| Some((d, per(d)?)))
         .collect()
-}
-
-/// The DDS file of `levels` (level 0 first).
-fn dds_file(
-    b: &TextureBinding,
-    levels: &[MipLevel],
-    opts: &ProcessOptions,
-) -> Result<Vec<u8>, PipelineError> {
-    let header = if opts.dx10 {
-        DdsHeaderKind::Dx10 { srgb: b.srgb }
-    } else {
-        DdsHeaderKind::Legacy
-    };
-    write_dds(levels, header).map_err(|e| PipelineError::encode(&b.name, e))
 }

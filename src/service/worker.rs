@@ -658,6 +658,7 @@ pub fn content_type(name: &str) -> &'static str {
     let ext = name.rsplit('.').next().unwrap_or("").to_ascii_lowercase();
     match ext.as_str() {
         "dds" => "image/vnd-ms.dds",
+        "ktx2" => "image/ktx2",
         "png" => "image/png",
         "jpg" | "jpeg" => "image/jpeg",
         "json" => "application/json",
