@@ -10,6 +10,8 @@ use seamstress::container::{BlockFormat, ColorSpace, EncodedTexture};
 use seamstress::model::{self, LoadOptions, Texture};
 use seamstress::pipeline::{self, Container, Format, Output, ProcessOptions};
 
+mod common;
+
 const MODEL: &str = "examples/cube_gradient_128.glb";
 
 fn run(opts: &ProcessOptions) -> Output {
@@ -159,4 +161,38 @@ fn bc7_options_that_cannot_hold_are_refused() {
     );
     // Jobs stored before BC7 said "dds" for BC1.
     assert_eq!(patch(r#"{"format": "dds"}"#).unwrap().format, Format::Bc1);
+}
+
+/// From the command line: the rewritten model refers to a BC7 DDS through
+/// `MSFT_texture_dds`, and with KTX2 files to the erased PNG alone.
+#[test]
+fn the_rewritten_model_refers_to_dds_files_only() {
+    let dir = std::env::temp_dir().join(format!("seamstress-formats-{}", std::process::id()));
+    let model = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join(MODEL);
+    for (flags, dds) in [
+        (&["--format", "bc7", "--no-mips"][..], true),
+        (
+            &[
+                "--format",
+                "bc7",
+                "--no-mips",
+                "--container",
+                "ktx2",
+                "--zstd",
+                "3",
+            ][..],
+            false,
+        ),
+    ] {
+        let out = dir.join(if dds { "dds" } else { "ktx2" });
+        let report = common::process_report(&model, &out, flags);
+        let files = &report["textures"][0]["files"];
+        assert_eq!(files["dds"].is_string(), dds, "{files}");
+        assert_eq!(files["ktx2"].is_string(), !dds, "{files}");
+        let glb = std::fs::read(out.join("cube_gradient_128.glb")).unwrap();
+        let text = String::from_utf8_lossy(&glb);
+        assert_eq!(text.contains("MSFT_texture_dds"), dds, "{flags:?}");
+        assert!(text.contains("image/png"));
+    }
+    let _ = std::fs::remove_dir_all(&dir);
 }

@@ -54,12 +54,12 @@ impl SeamFigures {
             let count = |t: &serde_json::Value| t["seams"][which]["edges"].as_u64();
             textures.iter().filter_map(count).sum::<u64>() as usize
         };
-        // What a renderer samples: the DDS when there is one, else the PNG.
+        // What a renderer samples: the block-compressed file when there is
+        // one, else the PNG.
         let held = |t: &serde_json::Value, key: &str| {
-            t["bc1_seam_aware"][key]
-                .as_f64()
-                .or_else(|| t["bc1"][key].as_f64())
-                .or_else(|| t["erased"][key].as_f64())
+            ["bc1_seam_aware", "bc1", "bc7_seam_aware", "bc7", "erased"]
+                .iter()
+                .find_map(|version| t[*version][key].as_f64())
         };
         let input = |key: &str| mean(textures.iter().map(|t| t["input"][key].as_f64()));
         let output = |key: &str| mean(textures.iter().map(|t| held(t, key)));

@@ -187,6 +187,9 @@ fn reference_dds_images(
             referenced += 1;
         }
     }
+    if dds_image.is_empty() {
+        return Ok(referenced);
+    }
 
     let used = obj
         .entry("extensionsUsed")
@@ -229,8 +232,10 @@ pub fn referenced_files(main: &[u8]) -> Result<Vec<String>, RewriteError> {
 /// the erased PNG as the fallback for viewers without DDS support (the
 /// original would show the seams again).
 pub struct Replacement<'a> {
-    pub dds_name: &'a str,
-    pub dds: &'a [u8],
+    /// The DDS file's name and bytes; `None` where the blocks went into
+    /// another container (KTX2), which no ratified extension carries: the
+    /// image is then the erased PNG alone.
+    pub dds: Option<(&'a str, &'a [u8])>,
     pub fallback_name: &'a str,
     pub fallback: &'a [u8],
     /// The image was padded: what its UVs are multiplied by, per axis.
@@ -276,7 +281,7 @@ pub fn rewrite_model(
 fn refer(root: &mut Value, images: &BTreeMap<usize, Replacement<'_>>) -> Result<(), RewriteError> {
     let dds: BTreeMap<usize, String> = images
         .iter()
-        .map(|(&i, r)| (i, r.dds_name.to_string()))
+        .filter_map(|(&i, r)| Some((i, r.dds?.0.to_string())))
         .collect();
     for (&i, r) in images {
         let uri = relative_uri(r.fallback_name)?;
@@ -305,11 +310,13 @@ fn embed(
             return Err(RewriteError::NoSuchImage(i));
         }
         let png = push_view(root, bin, r.fallback)?;
-        let dds = push_view(root, bin, r.dds)?;
         set_image(root, i, json!({ "bufferView": png, "mimeType": PNG_MIME }))?;
-        let list = array_mut(root, "images")?;
-        dds_image.insert(i, list.len());
-        list.push(json!({ "bufferView": dds, "mimeType": DDS_MIME }));
+        if let Some((_, bytes)) = r.dds {
+            let dds = push_view(root, bin, bytes)?;
+            let list = array_mut(root, "images")?;
+            dds_image.insert(i, list.len());
+            list.push(json!({ "bufferView": dds, "mimeType": DDS_MIME }));
+        }
     }
     root["buffers"][0]["byteLength"] = json!(bin.len());
     scale_padded(root, images)?;
@@ -527,8 +534,7 @@ mod tests {
         let images = BTreeMap::from([(
             1,
             Replacement {
-                dds_name: "b.dds",
-                dds: b"DDS data",
+                dds: Some(("b.dds", b"DDS data")),
                 fallback_name: "b.erased.png",
                 fallback: b"png",
                 uv_scale: None,
@@ -563,8 +569,7 @@ mod tests {
         let images = BTreeMap::from([(
             0,
             Replacement {
-                dds_name: "a b.dds",
-                dds: b"",
+                dds: Some(("a b.dds", b"")),
                 fallback_name: "a b.erased.png",
                 fallback: b"",
                 uv_scale: None,

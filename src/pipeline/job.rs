@@ -168,7 +168,8 @@ fn base_name(name: &str) -> &str {
 
 /// Adds the model rewritten to use the DDS files (`MSFT_texture_dds`), with
 /// the erased PNGs as the fallback images, and for a `.gltf` the files it
-/// still refers to, when the report lists DDS files. What stands in the way
+/// still refers to, when the report lists DDS or KTX2 files (a model with
+/// KTX2 files refers to the erased PNGs alone). What stands in the way
 /// is a warning, not a failure: the DDS files are the job's point.
 fn rewritten_model(
     input: &JobInput<'_>,
@@ -179,14 +180,18 @@ fn rewritten_model(
     let bytes_of = |name: &str| files.iter().find(|f| f.name == name).map(|f| &f.bytes[..]);
     let mut images = BTreeMap::new();
     for t in &report.textures {
-        let Some(dds_name) = t.files.dds.as_deref() else {
+        if t.files.dds.is_none() && t.files.ktx2.is_none() {
             continue;
-        };
-        if let (Some(dds), Some(fallback)) = (bytes_of(dds_name), bytes_of(&t.files.erased)) {
+        }
+        let dds = t
+            .files
+            .dds
+            .as_deref()
+            .and_then(|name| Some((name, bytes_of(name)?)));
+        if let Some(fallback) = bytes_of(&t.files.erased) {
             images.insert(
                 t.image,
                 Replacement {
-                    dds_name,
                     dds,
                     fallback_name: &t.files.erased,
                     fallback,

@@ -29,6 +29,18 @@ struct TextureView {
     erased: MetricsView,
     bc1: Option<MetricsView>,
     bc1_seam_aware: Option<MetricsView>,
+    #[serde(default)]
+    bc7: Option<MetricsView>,
+    #[serde(default)]
+    bc7_seam_aware: Option<MetricsView>,
+    #[serde(default)]
+    files: FilesView,
+}
+
+#[derive(Default, Deserialize)]
+struct FilesView {
+    #[serde(default)]
+    ktx2: Option<String>,
 }
 
 #[derive(Deserialize)]
@@ -114,10 +126,19 @@ fn texture_line(t: &TextureView) -> String {
             percent(left.length_share)
         );
     }
-    // What a renderer samples: the DDS when there is one, else the PNG.
-    let (after, held) = match (&t.bc1_seam_aware, &t.bc1) {
-        (Some(m), _) | (None, Some(m)) => (m, "in the DDS"),
-        (None, None) => (&t.erased, "in the erased PNG"),
+    // What a renderer samples: the DDS or KTX2 file when there is one,
+    // else the PNG.
+    let file = if t.files.ktx2.is_some() {
+        "in the KTX2"
+    } else {
+        "in the DDS"
+    };
+    let encoded = [&t.bc1_seam_aware, &t.bc1, &t.bc7_seam_aware, &t.bc7]
+        .into_iter()
+        .find_map(Option::as_ref);
+    let (after, held) = match encoded {
+        Some(m) => (m, file),
+        None => (&t.erased, "in the erased PNG"),
     };
     if let (Some(before), Some(after)) = (t.input.seam_rms_closed, after.seam_rms_closed) {
         let _ = write!(
