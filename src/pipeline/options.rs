@@ -260,10 +260,18 @@ impl OptionPatch {
                     )))
                 }
             },
+            // A whole number stays one, for the options that take only
+            // those (`zstd`).
             Some(Value::Number(_)) => value
-                .parse::<f64>()
+                .parse::<u64>()
                 .ok()
-                .and_then(serde_json::Number::from_f64)
+                .map(serde_json::Number::from)
+                .or_else(|| {
+                    value
+                        .parse::<f64>()
+                        .ok()
+                        .and_then(serde_json::Number::from_f64)
+                })
                 .map(Value::Number)
                 .ok_or_else(|| OptionsError(format!("{key}: {value:?} is not a number")))?,
             Some(_) => Value::String(value.to_string()),
@@ -327,6 +335,11 @@ mod tests {
         o.set_from_query("mode", "global").unwrap();
         o.set_from_query("mips", "false").unwrap();
         o.set_from_query("bc1_level", "fast").unwrap();
+        o.set_from_query("format", "bc7").unwrap();
+        o.set_from_query("container", "ktx2").unwrap();
+        o.set_from_query("zstd", "19").unwrap();
+        assert!(o.set_from_query("container", "zip").is_err());
+        assert!(o.set_from_query("zstd", "1.5").is_err());
         o.set_from_query("seam_weight", "12.5").unwrap();
         assert!(o.set_from_query("mode", "sideways").is_err());
         assert!(o.set_from_query("dx10", "maybe").is_err());
@@ -336,6 +349,10 @@ mod tests {
         assert_eq!(r.mode, Mode::Global);
         assert!(!r.mips);
         assert_eq!(r.bc1_level, Level::Fast);
+        assert_eq!(
+            (r.format, r.container, r.zstd),
+            (Format::Bc7, Container::Ktx2, 19)
+        );
         assert_eq!(r.seam_weight, 12.5);
         let mut bad = OptionPatch::default();
         bad.set_from_query("seam_weight", "-1").unwrap();
