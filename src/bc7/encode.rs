@@ -3,7 +3,7 @@
 //! candidate's subset fits ([`super::fit`]) into a block. Every candidate
 //! is scored by its exact decode; the lowest weighted squared error wins.
 
-use super::estimate::rank;
+use super::estimate::Scores;
 use super::fit::{fit, Fit, FitEffort, Setup};
 use super::modes::MODES;
 use super::params::Params;
@@ -123,30 +123,29 @@ pub fn encode_block(t: &Texels, e: &Effort) -> Params {
             }
         }
     }
-    if e.two > 0 && (varies || e.mode7_opaque) {
-        for p in rank(&t.px, &t.w, 2, 64, e.two) {
-            let b = bound(&best);
-            keep_better(&mut best, joint::<4>(t, 7, p, &e.fit, b));
+    if e.two > 0 {
+        let scores = Scores::new(&t.px, &t.w, 2);
+        if varies || e.mode7_opaque {
+            for p in scores.best(2, 64, e.two) {
+                let b = bound(&best);
+                keep_better(&mut best, joint::<4>(t, 7, p, &e.fit, b));
+            }
         }
-    }
-    if !varies {
-        if e.two > 0 {
-            for p in rank(&t.px, &t.w, 2, 64, e.two) {
-                for m in [1u8, 3] {
+        if !varies {
+            for (m, bits) in [(3u8, 2), (1, 3)] {
+                for p in scores.best(bits, 64, e.two) {
                     let b = bound(&best);
                     keep_better(&mut best, joint::<3>(t, m, p, &e.fit, b));
                 }
             }
         }
-        if e.three > 0 {
-            let ranked = rank(&t.px, &t.w, 3, 64, 64);
-            for &p in ranked.iter().take(e.three) {
+    }
+    if e.three > 0 && !varies {
+        let scores = Scores::new(&t.px, &t.w, 3);
+        for (m, bits, count) in [(2u8, 2, 64), (0, 3, 16)] {
+            for p in scores.best(bits, count, e.three) {
                 let b = bound(&best);
-                keep_better(&mut best, joint::<3>(t, 2, p, &e.fit, b));
-            }
-            for &p in ranked.iter().filter(|&&p| p < 16).take(e.three) {
-                let b = bound(&best);
-                keep_better(&mut best, joint::<3>(t, 0, p, &e.fit, b));
+                keep_better(&mut best, joint::<3>(t, m, p, &e.fit, b));
             }
         }
     }
