@@ -97,7 +97,14 @@ pub fn quantise(v: f32, bits: u32, pbits: PBits, p: u8) -> u8 {
     best.1 as u8
 }
 
-/// Nearest palette entry for each texel; the weighted squared error.
+/// Palettes of this many entries or fewer are searched in full; larger
+/// ones (4-bit indices) only around each texel's projection on the
+/// endpoint axis, which finds the nearest entry for all but texels far off
+/// the axis, where the next entry is within a fraction of a level.
+const FULL_SEARCH: usize = 8;
+
+/// The best palette entry for each texel (see [`FULL_SEARCH`]); the
+/// weighted squared error, or `f32::MAX` once it passes `stop_above`.
 #[inline]
 fn assign<const N: usize>(
     px: &[[f32; N]],
@@ -106,15 +113,35 @@ fn assign<const N: usize>(
     indices: &mut [u8; 16],
     stop_above: f32,
 ) -> f32 {
+    let last = palette.len() - 1;
+    let dist = |t: &[f32; N], e: &[f32; N]| {
+        let mut d = 0.0;
+        for c in 0..N {
+            let x = e[c] - t[c];
+            d += w[c] * x * x;
+        }
+        d
+    };
+    let axis: [f32; N] = std::array::from_fn(|c| (palette[last][c] - palette[0][c]) * w[c]);
+    let len2: f32 = (0..N)
+        .map(|c| axis[c] * (palette[last][c] - palette[0][c]))
+        .sum();
+    let project = palette.len() > FULL_SEARCH && len2 > 0.0;
     let mut total = 0.0;
     for (k, t) in px.iter().enumerate() {
+        let range = if project {
+            let along: f32 = (0..N)
+                .map(|c| (t[c] - palette[0][c]) * axis[c])
+                .sum::<f32>()
+                / len2;
+            let i = (along * last as f32).round().clamp(0.0, last as f32) as usize;
+            i.saturating_sub(1)..=(i + 1).min(last)
+        } else {
+            0..=last
+        };
         let mut best = (f32::MAX, 0u8);
-        for (i, e) in palette.iter().enumerate() {
-            let mut d = 0.0;
-            for c in 0..N {
-                let x = e[c] - t[c];
-                d += w[c] * x * x;
-            }
+        for i in range {
+            let d = dist(t, &palette[i]);
             if d < best.0 {
                 best = (d, i as u8);
             }
@@ -478,8 +505,12 @@ mod tests {
 
     #[test]
     fn quantise_picks_the_nearest_decode() {
+        // Every layout a mode has: p-bits only below 8 stored bits.
         for bits in 4..=8 {
             for pb in [PBits::None, PBits::Unique] {
+                if bits == 8 && pb != PBits::None {
+                    continue;
+                }
                 for p in 0..=u8::from(pb != PBits::None) {
                     for v in 0..=255 {
                         let q = quantise(v as f32, bits, pb, p);
