@@ -232,7 +232,7 @@ fn main() {
         .build()
         .expect("a 1-thread pool");
     println!(
-        "{:<12} {:>9} {:<22} {:>9} {:>11}",
+        "{:<14} {:>9} {:<22} {:>9} {:>11}  modes 0-7 (% of blocks)",
         "image", "size", "encoder", "PSNR dB", "MPix/s/thr"
     );
     for img in &images {
@@ -249,13 +249,24 @@ fn main() {
             let dec = bc7::decode_image(&blocks, img.width, img.height).expect("block count");
             let psnr = bc7::psnr(&img.rgba, &dec, channels.clone()).expect("same size");
             let mpix = (img.width * img.height) as f64 / best / 1e6;
+            let mut modes = [0usize; 8];
+            for b in &blocks {
+                if let Some(m) = b.mode() {
+                    modes[usize::from(m)] += 1;
+                }
+            }
+            let share: Vec<String> = modes
+                .iter()
+                .map(|&n| format!("{:>3.0}", 100.0 * n as f64 / blocks.len() as f64))
+                .collect();
             println!(
-                "{:<12} {:>9} {:<22} {:>9.3} {:>11.3}",
+                "{:<14} {:>9} {:<22} {:>9.3} {:>11.3}  {}",
                 format!("{}{}", img.name, if img.alpha { "+a" } else { "" }),
                 format!("{}x{}", img.width, img.height),
                 enc.label(),
                 psnr,
-                mpix
+                mpix,
+                share.join(" ")
             );
         }
     }

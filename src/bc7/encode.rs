@@ -3,7 +3,7 @@
 //! candidate's subset fits ([`super::fit`]) into a block. Every candidate
 //! is scored by its exact decode; the lowest weighted squared error wins.
 
-use super::estimate::rank;
+use super::estimate::Scores;
 use super::fit::{fit, Fit, FitEffort, Setup};
 use super::modes::MODES;
 use super::params::Params;
@@ -23,7 +23,16 @@ pub struct Effort {
     pub rotations: bool,
     /// Try mode 7 on opaque blocks too.
     pub mode7_opaque: bool,
+    /// Try mode 4 on blocks whose alpha does not vary.
+    pub mode4_opaque: bool,
+    /// Stop trying modes once a block's error is at most this.
+    pub good_enough: f32,
 }
+
+/// A block error (weighted squared 8-bit levels over the 16 texels) below
+/// which `fast` and `default` stop trying modes: half a level of error
+/// per texel on average, far under what any later mode could still gain.
+const GOOD_ENOUGH: f32 = 4.0;
 
 /// Effort per level. Figures from `cargo bench --bench bc7` (one thread,
 /// see the bench's table for the images).
@@ -39,6 +48,8 @@ pub fn effort(level: Level) -> Effort {
             three: 0,
             rotations: false,
             mode7_opaque: false,
+            mode4_opaque: false,
+            good_enough: GOOD_ENOUGH,
         },
         Level::Default => Effort {
             fit: FitEffort {
@@ -50,6 +61,8 @@ pub fn effort(level: Level) -> Effort {
             three: 1,
             rotations: true,
             mode7_opaque: false,
+            mode4_opaque: false,
+            good_enough: GOOD_ENOUGH,
         },
         Level::Best => Effort {
             fit: FitEffort {
@@ -61,6 +74,8 @@ pub fn effort(level: Level) -> Effort {
             three: 6,
             rotations: true,
             mode7_opaque: true,
+            mode4_opaque: true,
+            good_enough: 0.0,
         },
     }
 }
@@ -110,12 +125,18 @@ pub fn encode_block(t: &Texels, e: &Effort) -> Params {
     let mut best: Option<Candidate> = None;
     keep_better(&mut best, joint::<4>(t, 6, 0, &e.fit, f32::MAX));
     let varies = t.alpha_varies();
-    for m in [5u8, 4] {
+    let done = |best: &Option<Candidate>| best.is_some_and(|b| b.err <= e.good_enough);
+    let modes: &[u8] = if varies || e.mode4_opaque {
+        &[5, 4]
+    } else {
+        &[5]
+    };
+    for &m in modes {
         let rotations = if e.rotations { 0..4 } else { 0..1 };
         let selections = if m == 4 { 0..2 } else { 0..1 };
         for r in rotations {
             for s in selections.clone() {
-                if best.is_some_and(|b| b.err <= 0.0) {
+                if done(&best) {
                     return best.map_or_else(Params::default, |b| b.params);
                 }
                 let b = bound(&best);
@@ -123,30 +144,29 @@ pub fn encode_block(t: &Texels, e: &Effort) -> Params {
             }
         }
     }
-    if e.two > 0 && (varies || e.mode7_opaque) {
-        for p in rank(&t.px, &t.w, 2, 64, e.two) {
-            let b = bound(&best);
-            keep_better(&mut best, joint::<4>(t, 7, p, &e.fit, b));
+    if e.two > 0 && !done(&best) {
+        let scores = Scores::new(&t.px, &t.w, 2);
+        if varies || e.mode7_opaque {
+            for p in scores.best(2, 64, e.two) {
+                let b = bound(&best);
+                keep_better(&mut best, joint::<4>(t, 7, p, &e.fit, b));
+            }
         }
-    }
-    if !varies {
-        if e.two > 0 {
-            for p in rank(&t.px, &t.w, 2, 64, e.two) {
-                for m in [1u8, 3] {
+        if !varies {
+            for (m, bits) in [(3u8, 2), (1, 3)] {
+                for p in scores.best(bits, 64, e.two) {
                     let b = bound(&best);
                     keep_better(&mut best, joint::<3>(t, m, p, &e.fit, b));
                 }
             }
         }
-        if e.three > 0 {
-            let ranked = rank(&t.px, &t.w, 3, 64, 64);
-            for &p in ranked.iter().take(e.three) {
+    }
+    if e.three > 0 && !varies && !done(&best) {
+        let scores = Scores::new(&t.px, &t.w, 3);
+        for (m, bits, count) in [(2u8, 2, 64), (0, 3, 16)] {
+            for p in scores.best(bits, count, e.three) {
                 let b = bound(&best);
-                keep_better(&mut best, joint::<3>(t, 2, p, &e.fit, b));
-            }
-            for &p in ranked.iter().filter(|&&p| p < 16).take(e.three) {
-                let b = bound(&best);
-                keep_better(&mut best, joint::<3>(t, 0, p, &e.fit, b));
+                keep_better(&mut best, joint::<3>(t, m, p, &e.fit, b));
             }
         }
     }

@@ -20,6 +20,8 @@ mod modes;
 mod params;
 mod partitions;
 pub mod seam_aware;
+mod seam_block;
+mod solid;
 
 use rayon::prelude::*;
 

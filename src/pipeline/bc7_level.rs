@@ -122,26 +122,36 @@ pub(super) fn encode_seam_aware(
             ),
             _ => None,
         };
-        let target = rgba_f32(&level.stored, keeps_alpha(plan));
+        let rgba = rgba_f32(&level.stored, keeps_alpha(plan));
+        let rgb: Vec<f32> = rgba
+            .chunks_exact(4)
+            .flat_map(|px| [px[0], px[1], px[2]])
+            .collect();
+        let alpha: Option<Vec<f32>> =
+            keeps_alpha(plan).then(|| rgba.chunks_exact(4).map(|px| px[3]).collect());
         let problem = Problem {
             width: level.grid.width,
             height: level.grid.height,
-            target: &target,
+            rgb: &rgb,
+            alpha: alpha.as_deref(),
             inside: &level.classes.inside,
             points: &points,
-            alpha_points: alpha_points
-                .as_ref()
-                .map(|own| own.as_deref().unwrap_or(&points)),
+            // Alpha erased along its own seams keeps those closed; alpha
+            // kept as painted (a mask, or a material that does not blend)
+            // is only reproduced.
+            alpha_points: Some(
+                alpha_points
+                    .as_ref()
+                    .map_or(&[][..], |own| own.as_deref().unwrap_or(&points)),
+            ),
+            level: opts.bc7_level,
         };
         let sa_opts = SeamAwareOptions {
             alpha: opts.seam_weight,
             ..SeamAwareOptions::default()
         };
         optimise(&problem, &mut shipped, &sa_opts)
-            .map_err(|source| PipelineError::Solve {
-                name: b.name.clone(),
-                source,
-            })?
+            .map_err(|e| PipelineError::encode(&b.name, e))?
             .log("bc7");
     }
     Ok((shipped, t.elapsed().as_millis() as u64))
