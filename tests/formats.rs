@@ -99,16 +99,20 @@ fn a_bc7_dds_holds_every_level_and_decodes_as_the_report_says() {
         "our decoder and texture2ddecoder's differ"
     );
 
-    // BC7 keeps the seams near where erasure left them; seam-aware BC7
-    // keeps them at least as closed as the regular encoding.
+    // Regular BC7 reopens the closed seams (0.27 → 0.88 levels here);
+    // seam-aware BC7 keeps them as closed as erasure left them, at a cost
+    // of hundredths of a dB.
     let erased_closed = t.erased.seam_rms_closed.unwrap();
     let (r, a) = (
         regular.seam_rms_closed.unwrap(),
         aware.seam_rms_closed.unwrap(),
     );
-    assert!(r < erased_closed + 1.0, "regular BC7 seams at {r}");
-    assert!(a <= r, "seam-aware BC7 seams at {a}, regular at {r}");
-    assert!(aware.psnr.unwrap() >= regular.psnr.unwrap() - 0.5);
+    assert!(r > 2.0 * erased_closed, "regular BC7 seams at {r}");
+    assert!(
+        a <= erased_closed + 0.05 && a <= 0.4 * r,
+        "seam-aware BC7 seams at {a}, regular at {r}, erased at {erased_closed}"
+    );
+    assert!(aware.psnr.unwrap() >= regular.psnr.unwrap() - 0.1);
 }
 
 #[test]
