@@ -277,6 +277,29 @@ fn a_blend_gets_bc3_with_its_alpha_seams_closed() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// BC7 keeps a blended alpha in its own blocks, closed along alpha's own
+/// seams as BC3's is, and exactly as every GPU decodes it.
+#[test]
+fn a_blend_in_bc7_keeps_its_alpha_seams_closed() {
+    let dir = scratch("blend-bc7");
+    let model = alpha_duck(&dir, "BLEND", None, |_, _, rgb| from_luminance(rgb));
+    let report = process(&model, &dir.join("out"), &["--format", "bc7", "--no-mips"]);
+    let t = &report["textures"][0];
+    let a = &t["alpha"];
+    eprintln!("alpha {a}");
+    assert_eq!(a["format"], "bc7", "{a}");
+    let regular = f(&a["regular"]["exact"]["seam_rms_closed"]);
+    let aware = f(&a["dds"]["exact"]["seam_rms_closed"]);
+    assert!(
+        aware <= 0.6 * regular,
+        "alpha seam_rms {aware} vs regular {regular}"
+    );
+    assert!(f(&a["dds"]["exact"]["psnr"]) >= 40.0, "{a}");
+    let colour = f(&t["bc7_seam_aware"]["seam_rms_closed"]);
+    assert!(colour <= 0.3, "colour seams at {colour} in the BC7 file");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// Pillow and texture2ddecoder read the `BLEND` DDS (BC3) as our decoders
 /// do.
 #[needs(texture2ddecoder)]
