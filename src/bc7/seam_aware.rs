@@ -13,12 +13,16 @@
 //! A block coordinate descent over the footprint blocks in ascending order
 //! (the same on any number of threads), sweep after sweep until no block
 //! changes or `max_sweeps`: each block in turn, with its neighbours fixed,
-//! takes the best candidate of [`super::seam_block`]. After the first
+//! takes the best candidate of `seam_block.rs`. After the first
 //! sweep, a block is visited again only when a block it shares a seam
 //! point with has changed (nothing else enters its energy). Every accepted change
 //! lowers the energy, so the result is never worse than the regular
 //! encoding; a final check keeps the regular blocks if rounding said
 //! otherwise.
+
+// Small fixed arrays indexed by channel, texel and value in step;
+// iterator chains would hide which index is which.
+#![allow(clippy::needless_range_loop)]
 
 use super::encode::{self, Effort};
 use super::params::Params;
