@@ -11,9 +11,17 @@
 //! CesiumMan, WaterBottle), cropped to their central `BC7_BENCH_CROP`²
 //! texels (default 512; 0 keeps the whole texture).
 //!
+//! Then seam-aware BC7 on the models' erased textures (the engine's PNG
+//! output): seam_rms (8-bit levels, over the seams of the first texture's
+//! triangles along which the erased texture agrees to within a level:
+//! those the erasure closed) and PSNR over the texels inside the UV charts, of
+//! the regular encoding and of the seam-aware one, with the default
+//! options of `bc1::seam_aware`.
+//!
 //! Knobs: `BC7_BENCH_ONLY=fox,duck` (image names), `BC7_BENCH_ENCODERS=
 //! fast,default,best,ispc-ultra,ispc-veryfast,ispc-basic,ispc-slow`,
-//! `SHARED_DIR` (default `/work/shared`).
+//! `BC7_BENCH_SEAMS=0` (skip the seam-aware rows), `SHARED_DIR` (default
+//! `/work/shared`).
 //!
 //! Run: `cargo bench --bench bc7`.
 
@@ -215,6 +223,176 @@ fn encode(enc: Encoder, img: &Image) -> Vec<Block> {
     }
 }
 
+/// The engine's erased PNG of the model's first texture.
+fn erased_png(path: &Path) -> Result<Vec<u8>, String> {
+    use seamstress::model::{self, LoadOptions};
+    use seamstress::pipeline::{self, Format, ProcessOptions};
+    let m = model::load(path, &LoadOptions::default()).map_err(|e| e.to_string())?;
+    let opts = ProcessOptions {
+        format: Format::Png,
+        ..ProcessOptions::default()
+    };
+    let out = pipeline::run(&m, "model", 0, &opts).map_err(|e| e.to_string())?;
+    out.files
+        .into_iter()
+        .find(|f| f.name.ends_with(".erased.png"))
+        .map(|f| f.bytes)
+        .ok_or_else(|| "no erased texture".to_string())
+}
+
+/// seam_rms in 8-bit levels: the root of the seam energy per unit of seam
+/// weight and channel.
+fn seam_rms(
+    dec: &[u8],
+    points: &[seamstress::seam::quadrature::QuadPoint],
+    channels: usize,
+) -> f64 {
+    let (mut e, mut w) = (0.0, 0.0);
+    for q in points {
+        for c in 0..channels {
+            let v: f64 = q
+                .taps
+                .iter()
+                .map(|&(t, cw)| cw * f64::from(dec[t as usize * 4 + c]))
+                .sum();
+            e += q.weight * v * v;
+        }
+        w += q.weight * channels as f64;
+    }
+    if w > 0.0 {
+        (e / w).sqrt()
+    } else {
+        0.0
+    }
+}
+
+/// PSNR over the RGB(A) of the texels inside the charts.
+fn psnr_inside(a: &[u8], b: &[u8], inside: &[bool], channels: usize) -> f64 {
+    let (mut se, mut n) = (0.0, 0usize);
+    for (t, _) in inside.iter().enumerate().filter(|(_, i)| **i) {
+        for c in 0..channels {
+            let d = f64::from(a[t * 4 + c]) - f64::from(b[t * 4 + c]);
+            se += d * d;
+            n += 1;
+        }
+    }
+    10.0 * (255.0 * 255.0 * n as f64 / se.max(1e-12)).log10()
+}
+
+fn seam_rows(shared: &Path) {
+    use seamstress::bc7::seam_aware::{optimise, Problem, SeamAwareOptions};
+    use seamstress::model::{self, seams::find_seams, LoadOptions};
+    use seamstress::seam::{
+        grid::TexelGrid, metric::seam_points_texel_length, texels::inside_mask,
+    };
+    println!(
+        "\nseam-aware BC7 on the erased textures (seam_rms in 8-bit levels over the closed seams)"
+    );
+    println!(
+        "{:<12} {:>9} {:<8} {:>7} {:>8} {:>9} {:>9} {:>9} {:>8} {:>7}",
+        "model", "size", "level", "blocks", "rms", "rms_sa", "dB", "dB_sa", "sa ms", "sweeps"
+    );
+    let only = std::env::var("BC7_BENCH_ONLY")
+        .ok()
+        .map(|v| v.to_lowercase());
+    for (name, rel) in [
+        ("Fox", "assets/Fox/Fox.gltf"),
+        ("Duck", "assets/Duck/Duck.gltf"),
+        ("blub", "assets/blub/blub.glb"),
+        ("CesiumMan", "assets/CesiumMan/CesiumMan.gltf"),
+    ] {
+        if only
+            .as_ref()
+            .is_some_and(|o| !o.split(',').any(|n| n.trim() == name.to_lowercase()))
+        {
+            continue;
+        }
+        let path = shared.join(rel);
+        let loaded = model::load(&path, &LoadOptions::default()).map_err(|e| e.to_string());
+        let img = erased_png(&path).and_then(|png| decode(name, &png, 0));
+        let (m, img) = match (loaded, img) {
+            (Ok(m), Ok(img)) => (m, img),
+            (Err(e), _) | (_, Err(e)) => {
+                println!("skipping {name}: {e}");
+                continue;
+            }
+        };
+        let Some(b) = m.bindings.first() else {
+            continue;
+        };
+        let (w, h) = (img.width, img.height);
+        let grid = TexelGrid {
+            width: w,
+            height: h,
+            wrap_s: b.wrap_s,
+            wrap_t: b.wrap_t,
+        };
+        // The seams the erasure closed: those along which the erased
+        // texture agrees to within a level (the rest it left open, as
+        // painted apart).
+        let all = seam_points_texel_length(&grid, &find_seams(&b.triangles, w, h));
+        let points: Vec<_> = all
+            .into_iter()
+            .filter(|q| {
+                (0..3).all(|c| {
+                    let v: f64 = q
+                        .taps
+                        .iter()
+                        .map(|&(t, cw)| cw * f64::from(img.rgba[t as usize * 4 + c]))
+                        .sum();
+                    v.abs() <= 1.0
+                })
+            })
+            .collect();
+        let inside = inside_mask(&grid, &b.triangles);
+        let rgb: Vec<f32> = img
+            .rgba
+            .chunks_exact(4)
+            .flat_map(|t| [t[0], t[1], t[2]].map(|v| f32::from(v) / 255.0))
+            .collect();
+        let alpha: Vec<f32> = img
+            .rgba
+            .chunks_exact(4)
+            .map(|t| f32::from(t[3]) / 255.0)
+            .collect();
+        let channels = if img.alpha { 4 } else { 3 };
+        for level in [Level::Fast, Level::Default] {
+            let opts = EncodeOptions::for_image(level, &img.rgba);
+            let regular = bc7::encode_image(&img.rgba, w, h, &opts).expect("valid image");
+            let problem = Problem {
+                width: w,
+                height: h,
+                rgb: &rgb,
+                alpha: img.alpha.then_some(&alpha[..]),
+                inside: &inside,
+                points: &points,
+                alpha_points: None,
+                level,
+            };
+            let mut blocks = regular.clone();
+            let t = Instant::now();
+            let stats = optimise(&problem, &mut blocks, &SeamAwareOptions::default())
+                .expect("seam-aware BC7 runs");
+            let ms = t.elapsed().as_secs_f64() * 1e3;
+            let d0 = bc7::decode_image(&regular, w, h).expect("block count");
+            let d1 = bc7::decode_image(&blocks, w, h).expect("block count");
+            println!(
+                "{:<12} {:>9} {:<8} {:>7} {:>8.3} {:>9.3} {:>9.2} {:>9.2} {:>8.0} {:>7}",
+                name,
+                format!("{w}x{h}"),
+                level.name(),
+                stats.blocks,
+                seam_rms(&d0, &points, channels),
+                seam_rms(&d1, &points, channels),
+                psnr_inside(&img.rgba, &d0, &inside, channels),
+                psnr_inside(&img.rgba, &d1, &inside, channels),
+                ms,
+                stats.sweeps
+            );
+        }
+    }
+}
+
 fn main() {
     let images = load_images();
     let wanted: Vec<Encoder> = match std::env::var("BC7_BENCH_ENCODERS") {
@@ -269,5 +447,10 @@ fn main() {
                 share.join(" ")
             );
         }
+    }
+    if std::env::var("BC7_BENCH_SEAMS").as_deref() != Ok("0") {
+        let shared =
+            PathBuf::from(std::env::var("SHARED_DIR").unwrap_or_else(|_| "/work/shared".into()));
+        seam_rows(&shared);
     }
 }

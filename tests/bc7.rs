@@ -183,10 +183,9 @@ fn crafted_blocks() -> Vec<Block> {
                             [4, 0],
                             [2, 0],
                         ];
-                        for set in 0..2 {
-                            for k in 0..16 {
-                                let n = bits[usize::from(mode)][set];
-                                p.indices[set][k] = if n == 0 { 0 } else { rng.below(1 << n) };
+                        for (set, &n) in bits[usize::from(mode)].iter().enumerate() {
+                            for i in p.indices[set].iter_mut() {
+                                *i = if n == 0 { 0 } else { rng.below(1 << n) };
                             }
                         }
                         // Codes wider than their fields are masked by the

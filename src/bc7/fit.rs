@@ -12,6 +12,10 @@
 //! it is kept at the top of its range so that it decodes to 255 where the
 //! p-bits allow.
 
+// Small fixed arrays indexed by channel, texel and value in step;
+// iterator chains would hide which index is which.
+#![allow(clippy::needless_range_loop)]
+
 use super::modes::{expand, interpolate, weights, PBits};
 use super::solid;
 

@@ -35,6 +35,8 @@ impl Mode {
     }
 }
 
+// One argument per column of the specification's table.
+#[allow(clippy::too_many_arguments)]
 const fn mode(
     subsets: usize,
     partition_bits: u32,

@@ -62,6 +62,20 @@ impl Params {
         for (s, pair) in ends.iter_mut().enumerate().take(m.subsets) {
             *pair = [self.endpoint(s, 0), self.endpoint(s, 1)];
         }
+        std::array::from_fn(|k| self.texel_from(&ends, k))
+    }
+
+    /// Texel `k` alone (for searches that change one index at a time).
+    pub fn decode_texel(&self, k: usize) -> [u8; 4] {
+        let m = &MODES[self.mode as usize & 7];
+        let s = subset(m.subsets, usize::from(self.partition), k);
+        let mut ends = [[[0u32; 4]; 2]; 3];
+        ends[s] = [self.endpoint(s, 0), self.endpoint(s, 1)];
+        self.texel_from(&ends, k)
+    }
+
+    fn texel_from(&self, ends: &[[[u32; 4]; 2]; 3], k: usize) -> [u8; 4] {
+        let m = &MODES[self.mode as usize & 7];
         let (colour_set, alpha_set) = if m.separate_alpha() && self.index_selection == 1 {
             (1, 0)
         } else if m.separate_alpha() {
@@ -71,22 +85,20 @@ impl Params {
         };
         let wc = weights(m.index_bits[colour_set]);
         let wa = weights(m.index_bits[alpha_set]);
-        std::array::from_fn(|k| {
-            let s = subset(m.subsets, usize::from(self.partition), k);
-            let [e0, e1] = ends[s];
-            let fc = wc[usize::from(self.indices[colour_set][k]) & (wc.len() - 1)];
-            let fa = wa[usize::from(self.indices[alpha_set][k]) & (wa.len() - 1)];
-            let mut t = [
-                interpolate(e0[0], e1[0], fc) as u8,
-                interpolate(e0[1], e1[1], fc) as u8,
-                interpolate(e0[2], e1[2], fc) as u8,
-                interpolate(e0[3], e1[3], fa) as u8,
-            ];
-            if (1..=3).contains(&self.rotation) {
-                t.swap(3, usize::from(self.rotation) - 1);
-            }
-            t
-        })
+        let s = subset(m.subsets, usize::from(self.partition), k);
+        let [e0, e1] = ends[s];
+        let fc = wc[usize::from(self.indices[colour_set][k]) & (wc.len() - 1)];
+        let fa = wa[usize::from(self.indices[alpha_set][k]) & (wa.len() - 1)];
+        let mut t = [
+            interpolate(e0[0], e1[0], fc) as u8,
+            interpolate(e0[1], e1[1], fc) as u8,
+            interpolate(e0[2], e1[2], fc) as u8,
+            interpolate(e0[3], e1[3], fa) as u8,
+        ];
+        if (1..=3).contains(&self.rotation) {
+            t.swap(3, usize::from(self.rotation) - 1);
+        }
+        t
     }
 
     /// Makes every anchor index's top bit 0, as the format requires, by

@@ -126,13 +126,21 @@ const ROUNDS: usize = 3;
 impl BlockSearch<'_> {
     /// The best block found and its local energy; `current` when nothing
     /// beats it.
-    pub fn improve(&self, local: &Local, current: Params) -> (Params, f64) {
+    /// `reencode`: also try the regular encoder's block for the seams'
+    /// optimum (the first sweep does; later ones refine what they have).
+    pub fn improve(&self, local: &Local, current: Params, reencode: bool) -> (Params, f64) {
         let mut best = (current, local.energy(&values(&current)));
-        let target = local
-            .optimum()
-            .map(|t| t.map(|v| (v * 255.0).round().clamp(0.0, 255.0) as u8));
-        let reencoded = encode::encode_block(&Texels::new(&target, &self.weights), self.effort);
-        for start in [current, reencoded] {
+        let mut starts = vec![current];
+        if reencode {
+            let target = local
+                .optimum()
+                .map(|t| t.map(|v| (v * 255.0).round().clamp(0.0, 255.0) as u8));
+            starts.push(encode::encode_block(
+                &Texels::new(&target, &self.weights),
+                self.effort,
+            ));
+        }
+        for start in starts {
             let e = local.energy(&values(&start));
             if e < best.1 {
                 best = (start, e);
@@ -167,18 +175,10 @@ impl BlockSearch<'_> {
     /// The stored channels a block's endpoints may change in: alpha's only
     /// when it is part of the energy.
     fn stored_channels(&self, p: &Params) -> Vec<usize> {
-        let rot = usize::from(p.rotation);
-        // Output channel of each stored channel (rotation swaps one with
-        // alpha).
-        let output = |sc: usize| match rot {
-            1..=3 if sc == 3 => rot - 1,
-            1..=3 if sc == rot - 1 => 3,
-            _ => sc,
-        };
         let has_alpha = MODES[usize::from(p.mode & 7)].alpha_bits > 0;
         (0..4)
             .filter(|&sc| sc < 3 || has_alpha)
-            .filter(|&sc| self.alpha || output(sc) != 3)
+            .filter(|&sc| self.alpha || output_channel(p, sc) != 3)
             .collect()
     }
 
@@ -293,10 +293,19 @@ fn output_channel(p: &Params, sc: usize) -> usize {
 }
 
 /// Each texel's index in each set tried at every value, kept where the
-/// energy falls; true when one did.
+/// energy falls; true when one did. A change moves one texel by δ, which
+/// changes the energy by δ²M_kk + 2δ(Mv − r)_k per channel.
 fn move_indices(local: &Local, p: &mut Params, e: &mut f64) -> bool {
     let m = &MODES[usize::from(p.mode & 7)];
     let sets = if m.separate_alpha() { 2 } else { 1 };
+    let mut v = values(p);
+    let mut mv = [[0.0f64; 16]; 4];
+    for c in 0..4 {
+        let mm = local.m_of(c);
+        for k in 0..16 {
+            mv[c][k] = (0..16).map(|l| mm[k][l] * v[l][c]).sum();
+        }
+    }
     let mut moved = false;
     for set in 0..sets {
         let levels = 1u8 << m.index_bits[set];
@@ -307,9 +316,28 @@ fn move_indices(local: &Local, p: &mut Params, e: &mut f64) -> bool {
                 }
                 let mut c = *p;
                 c.indices[set][k] = i;
-                let ce = local.energy(&values(&c));
-                if ce < *e - 1e-15 {
-                    (*p, *e) = (c, ce);
+                let t = c.decode_texel(k).map(|x| f64::from(x) / 255.0);
+                let mut de = 0.0;
+                for ch in 0..4 {
+                    let d = t[ch] - v[k][ch];
+                    if d != 0.0 {
+                        let mm = local.m_of(ch);
+                        de += d * d * mm[k][k] + 2.0 * d * (mv[ch][k] - local.r[ch][k]);
+                    }
+                }
+                if de < -1e-15 {
+                    for ch in 0..4 {
+                        let d = t[ch] - v[k][ch];
+                        if d != 0.0 {
+                            let mm = local.m_of(ch);
+                            for l in 0..16 {
+                                mv[ch][l] += mm[l][k] * d;
+                            }
+                        }
+                    }
+                    v[k] = t;
+                    *p = c;
+                    *e += de;
                     moved = true;
                 }
             }

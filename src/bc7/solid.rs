@@ -5,6 +5,10 @@
 //! endpoints to their nearest codes instead leaves such subsets off by a
 //! level in most channels, which on flat art costs several dB.
 
+// Small fixed arrays indexed by channel, texel and value in step;
+// iterator chains would hide which index is which.
+#![allow(clippy::needless_range_loop)]
+
 use std::sync::OnceLock;
 
 use super::modes::{expand, interpolate, weights, PBits};
