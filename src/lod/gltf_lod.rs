@@ -38,6 +38,8 @@ pub struct PrimitiveData {
     /// A triangle list, each vertex replaced by the first vertex with the
     /// same value in every attribute (so duplicates do not look like seams).
     pub indices: Vec<u32>,
+    /// Per vertex, the first vertex with the same position and UVs.
+    pub uv_wedge: Vec<u32>,
 }
 
 impl PrimitiveData {
@@ -47,6 +49,7 @@ impl PrimitiveData {
             normals: self.normals.as_deref(),
             uv_sets: &self.uv_sets,
             indices: &self.indices,
+            uv_wedge: &self.uv_wedge,
         }
     }
 }
@@ -135,6 +138,18 @@ fn read_primitive(prim: &gltf::Primitive<'_>, buffers: &[Vec<u8>]) -> Option<Pri
     // Every attribute's value per vertex, so that vertices equal in all of
     // them count as one. An attribute the reader does not know (a custom
     // `_NAME`) cannot be compared: each vertex then stays its own.
+    let uv_wedge = {
+        let mut first: HashMap<Vec<u32>, u32> = HashMap::new();
+        (0..n)
+            .map(|k| {
+                let mut key: Vec<u32> = positions[k].map(f32::to_bits).to_vec();
+                for set in &uv_sets {
+                    key.extend(set[k].map(f32::to_bits));
+                }
+                *first.entry(key).or_insert(k as u32)
+            })
+            .collect()
+    };
     let custom = prim
         .attributes()
         .any(|(s, _)| matches!(s, Semantic::Extras(_)));
@@ -195,6 +210,7 @@ fn read_primitive(prim: &gltf::Primitive<'_>, buffers: &[Vec<u8>]) -> Option<Pri
         normals,
         uv_sets,
         indices,
+        uv_wedge,
     })
 }
 

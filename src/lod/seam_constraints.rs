@@ -60,7 +60,10 @@ impl Topology {
         let mut wedges: Vec<Vec<u32>> = vec![Vec::new(); n];
         for t in mesh.indices.chunks_exact(3) {
             for k in 0..3 {
-                let (a, b) = (t[k], t[(k + 1) % 3]);
+                let (a, b) = (
+                    mesh.uv_wedge[t[k] as usize],
+                    mesh.uv_wedge[t[(k + 1) % 3] as usize],
+                );
                 let (wa, wb) = (weld[a as usize], weld[b as usize]);
                 if !wedges[wa as usize].contains(&a) {
                     wedges[wa as usize].push(a);
@@ -115,9 +118,15 @@ impl Topology {
         })
     }
 
-    /// Locks per vertex (wedge): the seam test of every welded vertex.
-    pub fn seam_locks(&self, mesh: &Mesh<'_>, tolerance: f64) -> (Vec<bool>, LockCounts) {
+    /// Per vertex, whether it is locked, and whether it is a seam vertex
+    /// free to move along its seam: the seam test of every welded vertex.
+    pub fn seam_locks(
+        &self,
+        mesh: &Mesh<'_>,
+        tolerance: f64,
+    ) -> (Vec<bool>, Vec<bool>, LockCounts) {
         let mut welded_lock = vec![false; self.wedges.len()];
+        let mut welded_free = vec![false; self.wedges.len()];
         let mut counts = LockCounts::default();
         for w in 0..self.wedges.len() {
             if self.fixed[w] {
@@ -133,12 +142,24 @@ impl Topology {
             let free = neighbours.len() == 2
                 && self.wedges[w].len() == 2
                 && self.collapsible(mesh, w as u32, neighbours[0], neighbours[1], tolerance);
-            if !free {
+            if free {
+                welded_free[w] = true;
+            } else {
                 welded_lock[w] = true;
                 counts.seam_locked += 1;
             }
         }
-        (self.per_vertex(&welded_lock), counts)
+        (
+            self.per_vertex(&welded_lock),
+            self.per_vertex(&welded_free),
+            counts,
+        )
+    }
+
+    /// Per vertex, whether it is on a UV seam.
+    pub fn on_seam(&self) -> Vec<bool> {
+        let welded: Vec<bool> = self.seam_neighbours.iter().map(|n| !n.is_empty()).collect();
+        self.per_vertex(&welded)
     }
 
     /// A welded flag spread to every vertex of that position.
@@ -186,7 +207,10 @@ impl Topology {
         let mut lod_edges: BTreeMap<(u32, u32), Vec<(u32, u32)>> = BTreeMap::new();
         for t in lod.chunks_exact(3) {
             for k in 0..3 {
-                let (a, b) = (t[k], t[(k + 1) % 3]);
+                let (a, b) = (
+                    mesh.uv_wedge[t[k] as usize],
+                    mesh.uv_wedge[t[(k + 1) % 3] as usize],
+                );
                 let (wa, wb) = (self.weld[a as usize], self.weld[b as usize]);
                 present[wa as usize] = true;
                 if wa != wb {
@@ -370,9 +394,10 @@ mod tests {
             normals: None,
             uv_sets: &sets,
             indices: &indices,
+            uv_wedge: &(0..12).collect::<Vec<u32>>(),
         };
         let topo = Topology::new(&mesh);
-        let (locks, counts) = topo.seam_locks(&mesh, 1e-4);
+        let (locks, _, counts) = topo.seam_locks(&mesh, 1e-4);
         assert_eq!(counts.seam, 1);
         locks[4]
     }

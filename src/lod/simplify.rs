@@ -33,6 +33,10 @@ pub struct Mesh<'a> {
     /// Every TEXCOORD set, in UV as stored (floats, never quantised).
     pub uv_sets: &'a [Vec<[f32; 2]>],
     pub indices: &'a [u32],
+    /// Per vertex, the first vertex with its position and UVs: vertices
+    /// that differ only in other attributes (a flat-shaded normal) are one
+    /// wedge for the seam test, which is about the texture.
+    pub uv_wedge: &'a [u32],
 }
 
 /// Whether the seam test constrains the simplifier.
@@ -80,12 +84,19 @@ pub fn simplify(
         0.0
     }; 3];
     let scale = f64::from(meshopt::simplify_scale_decoder(mesh.positions));
-    let run = |locks: &[bool]| -> (Vec<u32>, f64) {
+    // Permissive: collapses may cross discontinuities of the other
+    // attributes (flat-shaded normals would otherwise lock every vertex),
+    // while UV seam vertices are protected, so that meshoptimizer moves
+    // them only along their seam with both sides together.
+    let run = |locks: &[bool], protect: &[bool]| -> (Vec<u32>, f64) {
         let flags: Vec<SimplifyVertex> = locks
             .iter()
-            .map(|&l| {
+            .zip(protect)
+            .map(|(&l, &p)| {
                 if l {
                     SimplifyVertex::Lock
+                } else if p {
+                    SimplifyVertex::Protect
                 } else {
                     SimplifyVertex::None
                 }
@@ -93,8 +104,8 @@ pub fn simplify(
             .collect();
         let mut error = 0.0f32;
         let options = match constraints {
-            Constraints::Seams { .. } => SimplifyOptions::LockBorder,
-            Constraints::Plain => SimplifyOptions::None,
+            Constraints::Seams { .. } => SimplifyOptions::LockBorder | SimplifyOptions::Permissive,
+            Constraints::Plain => SimplifyOptions::Permissive,
         };
         let indices = meshopt::simplify_with_attributes_and_locks_decoder(
             mesh.indices,
@@ -112,7 +123,7 @@ pub fn simplify(
     };
 
     let Constraints::Seams { tolerance } = constraints else {
-        let (indices, error) = run(&vec![false; vertices]);
+        let (indices, error) = run(&vec![false; vertices], &topo.on_seam());
         return Simplified {
             indices,
             error,
@@ -121,9 +132,9 @@ pub fn simplify(
             seams_frozen: false,
         };
     };
-    let (mut locks, mut counts) = topo.seam_locks(mesh, tolerance);
+    let (mut locks, protect, mut counts) = topo.seam_locks(mesh, tolerance);
     for round in 1..=MAX_ROUNDS {
-        let (indices, error) = run(&locks);
+        let (indices, error) = run(&locks, &protect);
         let bad = topo.violations(mesh, &indices, tolerance);
         if bad.is_empty() {
             return Simplified {
@@ -148,8 +159,8 @@ pub fn simplify(
     }
     // Never reached on the shared models; kept so that no level ever
     // reopens a seam: with every seam vertex locked no seam edge changes.
-    let (frozen, counts) = topo.seam_locks(mesh, -1.0);
-    let (indices, error) = run(&frozen);
+    let (frozen, protect, counts) = topo.seam_locks(mesh, -1.0);
+    let (indices, error) = run(&frozen, &protect);
     tracing::warn!(ratio, "seams would not settle; every seam vertex locked");
     Simplified {
         indices,

@@ -250,7 +250,7 @@ fn rewritten_model(
             Err(e) => warnings.push(format!("no levels of detail: {e}")),
         }
     }
-    let taken = |name: &str| files.iter().any(|f| f.name == name);
+    let taken = |name: &str| files.iter().chain(&lod_files).any(|f| f.name == name);
     // The files the rewritten model refers to that the job did not make.
     let beside: Vec<String> = match referenced_files(&bytes) {
         Ok(list) => list.into_iter().filter(|n| !taken(n)).collect(),
