@@ -156,7 +156,20 @@ pub fn make_levels(
         Constrained::Plain => None,
     };
     let geometry = lod::simplify_model(&meshes, ratios, tolerance);
+    let full = lod::full_triangles(&meshes);
     for (k, g) in geometry.iter().enumerate() {
+        // Short of the ratio by half again: the seams (or the error
+        // limit) stopped the simplifier, which the caller should know.
+        let wanted = full as f64 * ratios[k];
+        if constrained == Constrained::Seams && g.triangles as f64 > 1.5 * wanted.max(1.0) {
+            warnings.push(format!(
+                "lod {}: {} triangles for a ratio of {} ({wanted:.0}): the seam constraints \
+                 stop the simplifier there",
+                k + 1,
+                g.triangles,
+                ratios[k]
+            ));
+        }
         if g.frozen > 0 {
             warnings.push(format!(
                 "lod {}: {} primitive(s) kept every seam vertex in place",
@@ -172,7 +185,6 @@ pub fn make_levels(
         level_seams(model_name, bytes, &resolver, report, &measured)
     };
     let mut levels = Vec::with_capacity(ratios.len() + 1);
-    let full = lod::full_triangles(&meshes);
     levels.push(level_row(
         0,
         1.0,
