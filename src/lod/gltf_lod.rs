@@ -218,6 +218,9 @@ fn read_primitive(prim: &gltf::Primitive<'_>, buffers: &[Vec<u8>]) -> Option<Pri
 /// the primitive as it is). Meshes absent are the same in every level.
 pub type LevelIndices = BTreeMap<usize, Vec<Option<Vec<u32>>>>;
 
+/// A model's bytes, and the buffer file beside it (name, bytes) if any.
+pub type WithBeside = (Vec<u8>, Option<(String, Vec<u8>)>);
+
 /// A parsed model being added to: its JSON, and where new bytes go.
 struct Edit {
     root: Value,
@@ -352,7 +355,7 @@ impl Edit {
 
     /// The bytes: the model in its container, and the buffer file beside
     /// it where there is one.
-    fn finish(mut self) -> Result<(Vec<u8>, Option<(String, Vec<u8>)>), LodError> {
+    fn finish(mut self) -> Result<WithBeside, LodError> {
         self.data.resize(self.data.len().next_multiple_of(4), 0);
         self.root["buffers"][self.buffer]["byteLength"] = json!(self.data.len());
         if self.glb {
@@ -381,7 +384,7 @@ pub fn with_lods(
     levels: &[LevelIndices],
     ratios: &[f64],
     external: &str,
-) -> Result<(Vec<u8>, Option<(String, Vec<u8>)>), LodError> {
+) -> Result<WithBeside, LodError> {
     if main.starts_with(b"glTF") {
         // A GLB whose binary chunk is lost on re-packing would lose data.
         let bin = split_glb(main).map_err(json_err)?.bin;

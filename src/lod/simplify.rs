@@ -160,9 +160,9 @@ pub fn simplify(
             violations = bad.len(),
             "seam edges re-mapped; locking them"
         );
-        for v in 0..vertices {
-            if bad.binary_search(&topo.weld[v]).is_ok() && !locks[v] {
-                locks[v] = true;
+        for (v, lock) in locks.iter_mut().enumerate() {
+            if bad.binary_search(&topo.weld[v]).is_ok() {
+                *lock = true;
             }
         }
         counts.seam_locked += bad.len();
