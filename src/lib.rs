@@ -15,6 +15,7 @@ pub mod budget;
 pub mod client;
 pub mod container;
 pub mod heap;
+pub mod lod;
 pub mod mips;
 pub mod model;
 pub mod picture;

@@ -14,6 +14,7 @@ use seamstress::bc1::Level;
 use seamstress::budget::{self, Limits};
 use seamstress::client::retry::RetryParams;
 use seamstress::client::{Remote, RemoteParams};
+use seamstress::lod::LodRatios;
 use seamstress::model::LoadOptions;
 use seamstress::pipeline::{
     self, AlphaOption, Container, Format, JobSettings, Method, NoSink, ProcessOptions, Resize,
@@ -229,6 +230,15 @@ struct OptionArgs {
     /// them, with close-ups of the worst.
     #[arg(long)]
     pictures: bool,
+    /// Seam-aware levels of detail: comma-separated ratios of each mesh's
+    /// triangles (e.g. 0.5,0.25,0.1), carried by the rewritten model
+    /// through MSFT_lod; seams stay closed on every level.
+    #[arg(long, value_parser = word::<LodRatios>)]
+    lod: Option<LodRatios>,
+    /// Also write each level as its own <name>.lodN.glb, sharing the
+    /// textures.
+    #[arg(long)]
+    lod_files: bool,
 }
 
 impl OptionArgs {
@@ -253,6 +263,8 @@ impl OptionArgs {
             resize: self.resize,
             alpha: self.alpha,
             pictures: self.pictures,
+            lod: self.lod.unwrap_or_default(),
+            lod_files: self.lod_files,
         }
     }
 }

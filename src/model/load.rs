@@ -1666,6 +1666,21 @@ fn load_buffers<'a>(
     Ok(out)
 }
 
+/// A model's document, checked as [`plan_from_memory`] checks it, and the
+/// bytes of each of its buffers: what adding geometry to it reads from.
+pub(crate) fn document_and_buffers(
+    main: &[u8],
+    files: &dyn Resolver,
+) -> Result<(gltf::Document, Vec<Vec<u8>>), LoadErrorKind> {
+    let container = split_container(main)?;
+    let root = parse_root(container.json)?;
+    let buffers = load_buffers(&root, container.bin, files)?
+        .into_iter()
+        .map(Cow::into_owned)
+        .collect();
+    Ok((gltf::Document::from_json_without_validation(root), buffers))
+}
+
 fn view_infos(
     root: &json::Root,
     buffers: &[Cow<'_, [u8]>],

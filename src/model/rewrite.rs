@@ -277,6 +277,25 @@ pub fn rewrite_model(
     }
 }
 
+/// [`rewrite_model`], but every image referred to as a file beside the
+/// model, a `.glb` too (its binary chunk kept as it was): the base of a
+/// level of detail written as its own file, which shares the textures.
+pub fn rewrite_model_referring(
+    main: &[u8],
+    images: &BTreeMap<usize, Replacement<'_>>,
+) -> Result<Vec<u8>, RewriteError> {
+    if !main.starts_with(b"glTF") {
+        return rewrite_model(main, images);
+    }
+    let glb = split_glb(main)?;
+    let json = glb.json.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(glb.json);
+    let mut root: Value =
+        serde_json::from_slice(json).map_err(|e| RewriteError::Json(e.to_string()))?;
+    refer(&mut root, images)?;
+    let json = serde_json::to_vec(&root).map_err(|e| RewriteError::Json(e.to_string()))?;
+    Ok(pack_glb(&json, glb.bin))
+}
+
 /// The images as files beside the model.
 fn refer(root: &mut Value, images: &BTreeMap<usize, Replacement<'_>>) -> Result<(), RewriteError> {
     let dds: BTreeMap<usize, String> = images

@@ -7,9 +7,13 @@ use std::collections::BTreeMap;
 use std::time::Instant;
 
 use crate::budget::{self, Limits};
-use crate::model::rewrite::{referenced_files, rewrite_model, Replacement};
+use crate::lod::LodLevel;
+use crate::model::rewrite::{
+    referenced_files, rewrite_model, rewrite_model_referring, Replacement,
+};
 use crate::model::{self, LoadError, LoadOptions, Plan, Resolver};
 
+use super::lod::add_lods;
 use super::progress::{Progress, Sink, Stop};
 use super::{run_reporting, OutputFile, PipelineError, ProcessOptions, Report};
 
@@ -143,19 +147,29 @@ pub fn run_job(
         .map_err(JobError::Stopped)?;
     let t = Instant::now();
     let mut files = out.files;
-    let mut json = serde_json::to_vec_pretty(&out.report)
-        .map_err(|e| JobError::Failed(format!("cannot serialise the report: {e}")))?;
-    json.push(b'\n');
+    let mut report = out.report;
+    // The report goes before the model, but the levels of detail made
+    // with the model add to it: its place is held until then.
+    let report_at = files.len();
     files.push(OutputFile {
         name: REPORT_NAME.to_string(),
-        bytes: json,
+        bytes: Vec::new(),
     });
-    let mut warnings = out.report.warnings.clone();
-    rewritten_model(input, &out.report, &mut files, &mut warnings);
+    let mut warnings = report.warnings.clone();
+    if let Some((levels, lod_warnings)) = rewritten_model(input, &report, &mut files, &mut warnings)
+    {
+        report.lods = levels;
+        report.warnings.extend(lod_warnings.iter().cloned());
+        warnings.extend(lod_warnings);
+    }
+    let mut json = serde_json::to_vec_pretty(&report)
+        .map_err(|e| JobError::Failed(format!("cannot serialise the report: {e}")))?;
+    json.push(b'\n');
+    files[report_at].bytes = json;
     timings.rewrite = t.elapsed().as_millis() as u64;
     Ok(JobOutput {
         files,
-        report: out.report,
+        report,
         warnings,
         timings,
     })
@@ -171,12 +185,14 @@ fn base_name(name: &str) -> &str {
 /// still refers to, when the report lists DDS or KTX2 files (a model with
 /// KTX2 files refers to the erased PNGs alone). What stands in the way
 /// is a warning, not a failure: the DDS files are the job's point.
+/// With `lod`, the model carries its levels of detail: their figures and
+/// warnings are returned.
 fn rewritten_model(
     input: &JobInput<'_>,
     report: &Report,
     files: &mut Vec<OutputFile>,
     warnings: &mut Vec<String>,
-) {
+) -> Option<(Vec<LodLevel>, Vec<String>)> {
     let bytes_of = |name: &str| files.iter().find(|f| f.name == name).map(|f| &f.bytes[..]);
     let mut images = BTreeMap::new();
     for t in &report.textures {
@@ -201,24 +217,54 @@ fn rewritten_model(
         }
     }
     if images.is_empty() {
-        return;
+        return None;
     }
-    let bytes = match rewrite_model(input.main, &images) {
+    let mut bytes = match rewrite_model(input.main, &images) {
         Ok(b) => b,
-        Err(e) => return warnings.push(format!("no rewritten model: {e}")),
+        Err(e) => {
+            warnings.push(format!("no rewritten model: {e}"));
+            return None;
+        }
     };
+    let referring = (report.options.lod_files && !report.options.lod.is_empty())
+        .then(|| rewrite_model_referring(input.main, &images).ok())
+        .flatten();
     drop(images);
-    let taken = |name: &str| files.iter().any(|f| f.name == name);
+    let mut lods = None;
+    let mut lod_files = Vec::new();
+    if !report.options.lod.is_empty() {
+        let name = base_name(input.name);
+        match add_lods(
+            name,
+            &bytes,
+            referring.as_deref(),
+            report,
+            files,
+            input.files,
+        ) {
+            Ok(l) => {
+                bytes = l.model;
+                lod_files = l.files;
+                lods = Some((l.levels, l.warnings));
+            }
+            Err(e) => warnings.push(format!("no levels of detail: {e}")),
+        }
+    }
+    let taken = |name: &str| files.iter().chain(&lod_files).any(|f| f.name == name);
     // The files the rewritten model refers to that the job did not make.
     let beside: Vec<String> = match referenced_files(&bytes) {
         Ok(list) => list.into_iter().filter(|n| !taken(n)).collect(),
-        Err(e) => return warnings.push(format!("no rewritten model: {e}")),
+        Err(e) => {
+            warnings.push(format!("no rewritten model: {e}"));
+            return None;
+        }
     };
     let model_name = base_name(input.name).to_string();
     if taken(&model_name) {
-        return warnings.push(format!(
+        warnings.push(format!(
             "no rewritten model: the model's name {model_name:?} is the name of an output"
         ));
+        return None;
     }
     let mut copied = Vec::with_capacity(beside.len());
     for name in beside {
@@ -228,7 +274,8 @@ fn rewritten_model(
                 bytes: data.into_owned(),
             }),
             Err(e) => {
-                return warnings.push(format!("no rewritten model: cannot read {name:?}: {e}"))
+                warnings.push(format!("no rewritten model: cannot read {name:?}: {e}"));
+                return None;
             }
         }
     }
@@ -236,5 +283,7 @@ fn rewritten_model(
         name: model_name,
         bytes,
     });
+    files.extend(lod_files);
     files.extend(copied);
+    lods
 }

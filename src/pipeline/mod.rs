@@ -13,6 +13,7 @@ mod bc7_level;
 mod file;
 pub mod job;
 mod level;
+pub mod lod;
 mod measure;
 pub mod options;
 mod progress;
@@ -256,6 +257,10 @@ pub struct Report {
     /// What an unattended run should not miss: a UV chart repainted below
     /// 30 dB, say. Each line names its texture.
     pub warnings: Vec<String>,
+    /// With `lod`: the full mesh (level 0) and each level of detail,
+    /// measured on the erased texture and the DDS.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub lods: Vec<crate::lod::LodLevel>,
 }
 
 /// A named output file.
@@ -358,6 +363,7 @@ pub fn run_reporting(
         textures,
         skipped,
         warnings,
+        lods: Vec::new(),
     };
     Ok(Output {
         files,

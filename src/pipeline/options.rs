@@ -7,6 +7,7 @@ use serde::{Deserialize, Serialize};
 use serde_json::{Map, Value};
 
 use crate::bc1::{Level, Target};
+use crate::lod::LodRatios;
 use crate::resize::Resize;
 use crate::seam::erase::Mode;
 
@@ -115,6 +116,13 @@ pub struct ProcessOptions {
     /// Draw `<name>.seams.png` for each texture.
     #[serde(default = "pictures_before_option")]
     pub pictures: bool,
+    /// Seam-aware levels of detail: the ratios of each mesh's triangles
+    /// that the rewritten model carries (`MSFT_lod`); none by default.
+    #[serde(default)]
+    pub lod: LodRatios,
+    /// Also write each level of detail as its own `<name>.lodN.glb`.
+    #[serde(default)]
+    pub lod_files: bool,
 }
 
 fn default_seam_tolerance() -> f64 {
@@ -155,6 +163,8 @@ impl Default for ProcessOptions {
             resize: Resize::Mul4,
             alpha: AlphaOption::Auto,
             pictures: false,
+            lod: LodRatios::default(),
+            lod_files: false,
         }
     }
 }
@@ -187,6 +197,11 @@ impl ProcessOptions {
         };
         non_negative("seam_weight", self.seam_weight, "number")?;
         non_negative("seam_tolerance", self.seam_tolerance, "number of levels")?;
+        if self.lod_files && self.lod.is_empty() {
+            return Err(OptionsError(
+                "lod_files writes the levels of detail: it needs lod".into(),
+            ));
+        }
         if self.zstd > MAX_ZSTD_LEVEL {
             return Err(OptionsError(format!(
                 "zstd must be a Zstandard level from 1 to {MAX_ZSTD_LEVEL} (0: none), not {}",
@@ -345,6 +360,8 @@ mod tests {
         assert!(o.set_from_query("dx10", "maybe").is_err());
         assert!(o.set_from_query("seam_tolerance", "wide").is_err());
         assert!(o.set_from_query("colour", "red").is_err());
+        o.set_from_query("lod", "0.5,0.25").unwrap();
+        assert!(o.clone().set_from_query("lod", "0.5,0.75").is_err());
         let r = o.resolve(&ProcessOptions::default()).unwrap();
         assert_eq!(r.mode, Mode::Global);
         assert!(!r.mips);
@@ -354,6 +371,7 @@ mod tests {
             (Format::Bc7, Container::Ktx2, 19)
         );
         assert_eq!(r.seam_weight, 12.5);
+        assert_eq!(r.lod.as_slice(), [0.5, 0.25]);
         let mut bad = OptionPatch::default();
         bad.set_from_query("seam_weight", "-1").unwrap();
         assert!(bad.resolve(&ProcessOptions::default()).is_err());

@@ -1,0 +1,338 @@
+//! The job's levels of detail (`lod`): the rewritten model simplified with
+//! the seam test, each level measured on the job's own erased texture and
+//! DDS, and written into the model (`MSFT_lod`) and, with `lod_files`, as
+//! `<name>.lodN.glb` beside it.
+
+use std::borrow::Cow;
+
+use crate::bc1::{dds::read_dds, decode_image};
+use crate::lod::{
+    self, gltf_lod, LevelIndices, LodError, LodLevel, LodTexture, DEFAULT_TEXTURE_SIZE,
+    SEAM_TOLERANCE_TEXELS,
+};
+use crate::model::load::ResolveError;
+use crate::model::{find_seams, plan_from_memory, LoadOptions, Resolver, Texture};
+use crate::seam::grid::TexelGrid;
+use crate::seam::metric::colour_channels;
+use crate::seam::SeamMetric;
+
+use super::{Format, OutputFile, Report};
+
+/// The job's files first, then the input's: what the rewritten model (and
+/// each level) refers to.
+struct JobFiles<'a> {
+    files: &'a [OutputFile],
+    input: &'a dyn Resolver,
+}
+
+impl Resolver for JobFiles<'_> {
+    fn read(&self, path: &str) -> Result<Cow<'_, [u8]>, ResolveError> {
+        match self.files.iter().find(|f| f.name == path) {
+            Some(f) => Ok(Cow::Borrowed(&f.bytes)),
+            None => self.input.read(path),
+        }
+    }
+}
+
+/// What the levels add to the job.
+pub(super) struct Lods {
+    /// The rewritten model, now with its levels.
+    pub model: Vec<u8>,
+    /// The levels' buffer beside a `.gltf`, and `<name>.lodN.glb`.
+    pub files: Vec<OutputFile>,
+    pub levels: Vec<LodLevel>,
+    pub warnings: Vec<String>,
+}
+
+/// One processed texture's level-0 images, decoded once for every level.
+struct Measured {
+    image: usize,
+    width: usize,
+    height: usize,
+    erased: Texture,
+    dds: Option<Vec<f32>>,
+}
+
+/// The levels of `model` (the rewritten model, named `model_name`);
+/// `referring` is the same model referring to its textures as files, the
+/// base of each `<name>.lodN.glb` (with `lod_files`).
+pub(super) fn add_lods(
+    model_name: &str,
+    model: &[u8],
+    referring: Option<&[u8]>,
+    report: &Report,
+    files: &[OutputFile],
+    input: &dyn Resolver,
+) -> Result<Lods, LodError> {
+    let ratios = report.options.lod.as_slice();
+    let made = make_levels(
+        model_name,
+        model,
+        referring,
+        report,
+        files,
+        input,
+        ratios,
+        Constrained::Seams,
+    )?;
+    let (model, beside) = gltf_lod::with_lods(
+        model,
+        &made.indices,
+        ratios,
+        &format!("{}.lod.bin", stem(model_name)),
+    )?;
+    let mut out_files = made.files;
+    if let Some((name, bytes)) = beside {
+        out_files.insert(0, OutputFile { name, bytes });
+    }
+    Ok(Lods {
+        model,
+        files: out_files,
+        levels: made.levels,
+        warnings: made.warnings,
+    })
+}
+
+/// Whether the seam test constrains the simplifier.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Constrained {
+    /// The job's way: the seam test of `lod`.
+    Seams,
+    /// meshoptimizer alone, for comparison.
+    Plain,
+}
+
+/// Levels made and measured.
+pub struct MadeLevels {
+    /// Level 0 (the full mesh), then one per ratio.
+    pub levels: Vec<LodLevel>,
+    pub indices: Vec<LevelIndices>,
+    /// `<name>.lodN.glb`, where a referring model was given.
+    pub files: Vec<OutputFile>,
+    pub warnings: Vec<String>,
+}
+
+fn stem(model_name: &str) -> &str {
+    model_name.rsplit_once('.').map_or(model_name, |(s, _)| s)
+}
+
+/// The levels of a job's rewritten model (`model`, before any levels were
+/// added to it) at `ratios`, each measured on the job's erased texture and
+/// DDS (`report`, `files`): what `lod` does, and, `Plain`, what
+/// meshoptimizer alone would do, for comparison.
+#[allow(clippy::too_many_arguments)]
+pub fn make_levels(
+    model_name: &str,
+    model: &[u8],
+    referring: Option<&[u8]>,
+    report: &Report,
+    files: &[OutputFile],
+    input: &dyn Resolver,
+    ratios: &[f64],
+    constrained: Constrained,
+) -> Result<MadeLevels, LodError> {
+    let resolver = JobFiles { files, input };
+    let meshes = gltf_lod::read_meshes(model, &resolver)?;
+    let mut warnings: Vec<String> = meshes
+        .iter()
+        .filter_map(|m| m.kept_whole.as_ref())
+        .map(|why| format!("lod: {why}: kept whole in every level"))
+        .collect();
+    for w in &warnings {
+        tracing::warn!(warning = %w, "mesh not simplified");
+    }
+    let size = report
+        .textures
+        .iter()
+        .map(|t| t.width.max(t.height) as f64)
+        .fold(0.0, f64::max);
+    let size = if size > 0.0 {
+        size
+    } else {
+        DEFAULT_TEXTURE_SIZE
+    };
+    let tolerance = match constrained {
+        Constrained::Seams => Some(SEAM_TOLERANCE_TEXELS / size),
+        Constrained::Plain => None,
+    };
+    let geometry = lod::simplify_model(&meshes, ratios, tolerance);
+    let full = lod::full_triangles(&meshes);
+    for (k, g) in geometry.iter().enumerate() {
+        // Short of the ratio by half again: the seams (or the error
+        // limit) stopped the simplifier, which the caller should know.
+        let wanted = full as f64 * ratios[k];
+        if constrained == Constrained::Seams && g.triangles as f64 > 1.5 * wanted.max(1.0) {
+            warnings.push(format!(
+                "lod {}: {} triangles for a ratio of {} ({wanted:.0}): the seam constraints \
+                 stop the simplifier there",
+                k + 1,
+                g.triangles,
+                ratios[k]
+            ));
+        }
+        if g.frozen > 0 {
+            warnings.push(format!(
+                "lod {}: {} primitive(s) kept every seam vertex in place",
+                k + 1,
+                g.frozen
+            ));
+        }
+    }
+
+    let measured = measured_textures(report, files);
+    let stem = stem(model_name);
+    let measure = |bytes: &[u8]| -> Result<Vec<LodTexture>, LodError> {
+        level_seams(model_name, bytes, &resolver, report, &measured)
+    };
+    let mut levels = Vec::with_capacity(ratios.len() + 1);
+    levels.push(level_row(
+        0,
+        1.0,
+        full,
+        0.0,
+        0.0,
+        (0, 0),
+        measure(model)?,
+        None,
+    ));
+    let mut out_files = Vec::new();
+    for (k, g) in geometry.iter().enumerate() {
+        let glb = gltf_lod::level_glb(model, &g.indices)?;
+        let textures = measure(&glb)?;
+        let file = match referring {
+            Some(base) => {
+                let name = format!("{stem}.lod{}.glb", k + 1);
+                let bytes = gltf_lod::level_glb(base, &g.indices)?;
+                out_files.push(OutputFile {
+                    name: name.clone(),
+                    bytes,
+                });
+                Some(name)
+            }
+            None => None,
+        };
+        levels.push(level_row(
+            k + 1,
+            ratios[k],
+            g.triangles,
+            g.error,
+            g.hausdorff,
+            (g.seam_vertices, g.seam_locked),
+            textures,
+            file,
+        ));
+        tracing::info!(
+            level = k + 1,
+            ratio = ratios[k],
+            triangles = g.triangles,
+            hausdorff = g.hausdorff,
+            "level of detail made"
+        );
+    }
+    Ok(MadeLevels {
+        levels,
+        indices: geometry.into_iter().map(|g| g.indices).collect(),
+        files: out_files,
+        warnings,
+    })
+}
+
+#[allow(clippy::too_many_arguments)]
+fn level_row(
+    level: usize,
+    ratio: f64,
+    triangles: usize,
+    error: f64,
+    hausdorff: f64,
+    (seam_vertices, seam_vertices_locked): (usize, usize),
+    textures: Vec<LodTexture>,
+    file: Option<String>,
+) -> LodLevel {
+    let worst = |f: fn(&LodTexture) -> Option<f64>| textures.iter().filter_map(f).reduce(f64::max);
+    LodLevel {
+        level,
+        ratio,
+        triangles,
+        seam_edges: textures.iter().map(|t| t.seam_edges).sum(),
+        seam_rms_erased: worst(|t| t.seam_rms_erased),
+        seam_rms_dds: worst(|t| t.seam_rms_dds),
+        simplifier_error: error,
+        hausdorff,
+        seam_vertices,
+        seam_vertices_locked,
+        file,
+        textures,
+    }
+}
+
+/// Each processed texture's erased image and its DDS (BC1) decoded.
+fn measured_textures(report: &Report, files: &[OutputFile]) -> Vec<Measured> {
+    let bytes_of = |name: &str| files.iter().find(|f| f.name == name).map(|f| &f.bytes[..]);
+    let mut out = Vec::new();
+    for t in &report.textures {
+        let Some(erased) = bytes_of(&t.files.erased) else {
+            continue;
+        };
+        let Ok(erased) = Texture::decode(erased, u32::MAX) else {
+            continue;
+        };
+        let dds = (report.options.format == Format::Bc1)
+            .then(|| t.files.dds.as_deref().and_then(bytes_of))
+            .flatten()
+            .and_then(|b| read_dds(b).ok())
+            .and_then(|d| {
+                let l = d.levels.into_iter().next()?;
+                decode_image(&l.blocks, l.width as usize, l.height as usize).ok()
+            });
+        out.push(Measured {
+            image: t.image,
+            width: t.width,
+            height: t.height,
+            erased,
+            dds,
+        });
+    }
+    out
+}
+
+/// The seam figures of every processed texture on the mesh of `bytes`.
+fn level_seams(
+    name: &str,
+    bytes: &[u8],
+    files: &dyn Resolver,
+    report: &Report,
+    measured: &[Measured],
+) -> Result<Vec<LodTexture>, LodError> {
+    let opts = LoadOptions {
+        extra_maps: report.options.extra_maps,
+        ..LoadOptions::default()
+    };
+    let plan =
+        plan_from_memory(name, bytes, files, &opts).map_err(|e| LodError::Model(e.to_string()))?;
+    let mut out = Vec::new();
+    for m in measured {
+        let Some(pt) = plan.textures.iter().find(|p| p.image == m.image) else {
+            continue;
+        };
+        let seams = find_seams(&pt.triangles, m.width, m.height);
+        let grid = TexelGrid {
+            width: m.width,
+            height: m.height,
+            wrap_s: pt.wrap_s,
+            wrap_t: pt.wrap_t,
+        };
+        let metric = SeamMetric::new(&grid, &seams);
+        let channels = m.erased.channels;
+        let compared = colour_channels(channels);
+        out.push(LodTexture {
+            image: m.image,
+            seam_edges: seams.seams.len(),
+            seam_rms_erased: metric.seam_rms(&m.erased.data, channels, compared),
+            seam_rms_dds: m
+                .dds
+                .as_ref()
+                .and_then(|d| metric.seam_rms(d, 3, compared.min(3))),
+        });
+    }
+    Ok(out)
+}
