@@ -23,3 +23,4 @@ pub mod plural;
 pub mod resize;
 pub mod seam;
 pub mod service;
+pub mod view;

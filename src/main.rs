@@ -2,7 +2,7 @@
 //! or a batch of them, `serve` runs the HTTP service.
 
 use std::io::Write;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use anyhow::Context;
@@ -63,6 +63,16 @@ enum Command {
     /// Run workers only, on a cluster's shared job store and files: claims
     /// and runs jobs, serves /metrics and /healthz.
     Worker(Box<seamstress::service::WorkerArgs>),
+    /// Show a folder `process` wrote in the browser: the model in 3D, its
+    /// texture as input, erased, regular and seam-aware BC1 and with filter
+    /// taps discarded, and its seams. Serves on 127.0.0.1 and prints the URL.
+    View {
+        /// One model's output folder (it holds report.json).
+        dir: PathBuf,
+        /// The port; 0 takes any free one.
+        #[arg(long, default_value_t = 0)]
+        port: u16,
+    },
     /// One job of a server's worker, in a process of its own.
     #[command(hide = true)]
     RunJob {
@@ -229,6 +239,10 @@ struct OptionArgs {
     /// them, with close-ups of the worst.
     #[arg(long)]
     pictures: bool,
+    /// Also write <name>.regular.dds: level 0's regular BC1 encoding, for
+    /// `seamstress view` to show beside the seam-aware one.
+    #[arg(long)]
+    keep_regular: bool,
 }
 
 impl OptionArgs {
@@ -253,6 +267,7 @@ impl OptionArgs {
             resize: self.resize,
             alpha: self.alpha,
             pictures: self.pictures,
+            keep_regular: self.keep_regular,
         }
     }
 }
@@ -303,6 +318,10 @@ fn main() -> ExitCode {
             Ok(()) => ExitCode::SUCCESS,
             Err(e) => fail(format, 1, &format!("{}: {e}", dir.display())),
         },
+        Command::View { dir, port } => match view(&dir, port) {
+            Ok(()) => ExitCode::SUCCESS,
+            Err(e) => fail(format, 1, &e.to_string()),
+        },
         Command::Serve(args) => match seamstress::service::serve(*args) {
             Ok(()) => ExitCode::SUCCESS,
             Err(e) => fail(format, if e.is_usage() { 2 } else { 1 }, &e.to_string()),
@@ -312,6 +331,19 @@ fn main() -> ExitCode {
             Err(e) => fail(format, if e.is_usage() { 2 } else { 1 }, &e.to_string()),
         },
     }
+}
+
+/// `seamstress view`: serves the folder until Ctrl-C; the URL goes to
+/// standard output, for a person or a script to open.
+fn view(dir: &Path, port: u16) -> anyhow::Result<()> {
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?;
+    runtime.block_on(seamstress::view::serve_folder(dir, port, |url| {
+        println!("{url}");
+        let _ = std::io::stdout().flush();
+    }))?;
+    Ok(())
 }
 
 /// Ends the program with `status`, saying why on standard error: one line,
@@ -343,6 +375,7 @@ fn log_filter(cli: &Cli, env: Option<String>) -> String {
         Command::Process(a) => (1, a.batch.quiet),
         Command::Submit(a) => (1, a.batch.quiet),
         Command::RunJob { .. } => (1, false),
+        Command::View { .. } => (1, false),
         Command::Serve(_) | Command::Worker(_) => (2, false),
     };
     // As before the flags: a SEAMSTRESS_LOG that does not parse is ignored.

@@ -227,7 +227,7 @@ fn encode_png(img: &RgbImage) -> Result<Vec<u8>, PictureError> {
 /// on the edge's two half-edges at matching γ (averaged over γ and over the
 /// three channels). Samples sit at the midpoints of equal γ steps, so the
 /// corners an edge shares with its neighbours are not counted twice.
-fn residual(grid: &TexelGrid, data: &[f32], e: &SeamEdge) -> f64 {
+pub fn residual(grid: &TexelGrid, data: &[f32], e: &SeamEdge) -> f64 {
     let sane = |h: &[[f64; 2]; 2]| h.iter().flatten().all(|c| c.abs() <= MAX_ABS_UV);
     if !sane(&e.a) || !sane(&e.b) {
         return f64::INFINITY;

@@ -112,9 +112,16 @@ pub struct ProcessOptions {
     /// What the DDS keeps of alpha.
     #[serde(default = "alpha_before_keeping")]
     pub alpha: AlphaOption,
-    /// Draw `<name>.seams.png` for each texture.
+    /// Draw `<name>.seams.png` for each texture, and write what the view
+    /// page draws the seams and the discarded filter taps from
+    /// (`<name>.charts.png`, `<name>.edges.json`).
     #[serde(default = "pictures_before_option")]
     pub pictures: bool,
+    /// Also write the regular BC1 encoding of level 0 as
+    /// `<name>.regular.dds`, for the view page to show beside the
+    /// seam-aware one.
+    #[serde(default)]
+    pub keep_regular: bool,
 }
 
 fn default_seam_tolerance() -> f64 {
@@ -155,6 +162,7 @@ impl Default for ProcessOptions {
             resize: Resize::Mul4,
             alpha: AlphaOption::Auto,
             pictures: false,
+            keep_regular: false,
         }
     }
 }
