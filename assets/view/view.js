@@ -321,16 +321,19 @@ function indexEdges(meshes) {
       for (let k = 0; k < 3; k++) {
         const i = 3 * t + k, j = 3 * t + ((k + 1) % 3);
         const key = uvKey(uv.getX(i), uv.getY(i)) + '|' + uvKey(uv.getX(j), uv.getY(j));
-        byUv.set(key, { mesh, i, j, t });
+        if (!byUv.has(key)) byUv.set(key, []);
+        byUv.get(key).push({ mesh, i, j, t });
       }
     }
   }
   return byUv;
 }
 
-function findHalf(byUv, h) {
+/** Every half-edge with these UV endpoints: mirrored halves of a model
+ * share UVs, so there may be several. */
+function findHalves(byUv, h) {
   const ka = uvKey(h[0][0], h[0][1]), kb = uvKey(h[1][0], h[1][1]);
-  return byUv.get(ka + '|' + kb) || byUv.get(kb + '|' + ka);
+  return [...(byUv.get(ka + '|' + kb) || []), ...(byUv.get(kb + '|' + ka) || [])];
 }
 
 function faceNormal(mesh, t) {
@@ -338,14 +341,23 @@ function faceNormal(mesh, t) {
   return new THREE.Vector3().crossVectors(b.sub(a), c.sub(a)).normalize();
 }
 
-/** A seam edge placed on the model: its 3D endpoints and the surface normal. */
+/** A seam edge placed on the model: its 3D endpoints and the surface
+ * normal, from the two triangles that meet along it (of the copies of each
+ * half-edge, the two that share their 3D endpoints). */
 function placeSeam(byUv, edge, texSize) {
-  const ha = findHalf(byUv, edge.a);
-  if (!ha) return null;
-  const hb = findHalf(byUv, edge.b);
-  const p0 = worldVertex(ha.mesh, ha.i), p1 = worldVertex(ha.mesh, ha.j);
-  const normal = faceNormal(ha.mesh, ha.t);
-  if (hb) normal.add(faceNormal(hb.mesh, hb.t)).normalize();
+  const as = findHalves(byUv, edge.a), bs = findHalves(byUv, edge.b);
+  let best = null;
+  for (const ha of as) {
+    const p0 = worldVertex(ha.mesh, ha.i), p1 = worldVertex(ha.mesh, ha.j);
+    for (const hb of bs) {
+      const q0 = worldVertex(hb.mesh, hb.i), q1 = worldVertex(hb.mesh, hb.j);
+      const gap = Math.min(p0.distanceTo(q0) + p1.distanceTo(q1), p0.distanceTo(q1) + p1.distanceTo(q0));
+      if (!best || gap < best.gap) best = { gap, ha, hb, p0, p1 };
+    }
+  }
+  if (!best) return null;
+  const { ha, hb, p0, p1 } = best;
+  const normal = faceNormal(ha.mesh, ha.t).add(faceNormal(hb.mesh, hb.t)).normalize();
   const texels = Math.hypot((edge.a[1][0] - edge.a[0][0]) * texSize[0], (edge.a[1][1] - edge.a[0][1]) * texSize[1]);
   return { p0, p1, normal, worldPerTexel: p0.distanceTo(p1) / Math.max(texels, 1e-6) };
 }
@@ -633,7 +645,7 @@ function updateSkeletons(root) {
 /** With #probe=K: for each version, the camera on stop K, a screenshot and
  * where the seam lies on it, written into <pre id="result"> for a test. */
 function probe(view, k) {
-  const stop = params.get('probe') === 'overview' ? view.stops[0] : view.goTo(k, true);
+  const stop = view.goTo(k, true);
   view.lines.visible = false;
   const shots = {};
   const samples = 64;
@@ -648,7 +660,7 @@ function probe(view, k) {
     }
     shots[m] = { png: renderer.domElement.toDataURL('image/png'), line };
   }
-  return { edge: stop.edge, shots };
+  return { stop: k, edge: stop.edge, shots };
 }
 
 // What a driving browser reads once the page has rendered (or failed): a
