@@ -136,7 +136,10 @@ impl Browser {
             json!({ "targetId": target, "flatten": true }),
             None,
         );
-        let session = attached["result"]["sessionId"].as_str().unwrap().to_string();
+        let session = attached["result"]["sessionId"]
+            .as_str()
+            .unwrap()
+            .to_string();
         // The first document is about:blank, replaced by the page: its
         // context is destroyed under an early evaluation, which is retried.
         let wait = "new Promise(r => { const t = () => window.seamstressResult \
@@ -280,7 +283,10 @@ fn the_view_page_shows_the_seams_closing() {
     let html = http().get(&page).send().unwrap();
     assert_eq!(html.status(), 200);
     assert!(html.text().unwrap().contains("view.js"));
-    let anonymous = http().get(server.url(&format!("/v1/jobs/{id}"))).send().unwrap();
+    let anonymous = http()
+        .get(server.url(&format!("/v1/jobs/{id}")))
+        .send()
+        .unwrap();
     assert_eq!(anonymous.status(), 401);
 
     let mut browser = Browser::start(&scratch.join("profile"), &artefacts().join("chromium.log"));
@@ -302,7 +308,10 @@ fn the_view_page_shows_the_seams_closing() {
         artefacts().join("readme-seam-aware.png"),
     );
 
-    assert_eq!(r["s3tc"], true, "SwiftShader offers S3TC: the GPU path is tested");
+    assert_eq!(
+        r["s3tc"], true,
+        "SwiftShader offers S3TC: the GPU path is tested"
+    );
     let (input, erased, regular, aware, discard) = (
         step(&worst, "input"),
         step(&worst, "erased"),
@@ -310,14 +319,26 @@ fn the_view_page_shows_the_seams_closing() {
         step(&worst, "seam_aware"),
         step(&worst, "discard"),
     );
-    assert!(input > 10.0 * regular, "input {input:.2}, regular BC1 {regular:.2}");
-    assert!(regular > aware, "regular {regular:.2}, seam-aware {aware:.2}");
-    assert!(aware < 1.5 && erased < 1.5, "seam-aware {aware:.2}, erased {erased:.2}");
+    assert!(
+        input > 10.0 * regular,
+        "input {input:.2}, regular BC1 {regular:.2}"
+    );
+    assert!(
+        regular > aware,
+        "regular {regular:.2}, seam-aware {aware:.2}"
+    );
+    assert!(
+        aware < 1.5 && erased < 1.5,
+        "seam-aware {aware:.2}, erased {erased:.2}"
+    );
     // Discarding taps shows each side's own chart: it removes bilinear
     // bleeding, never the paint. On this seam the sides are painted apart
     // by its jump, so the step stays near it, and never above the input's.
     let jump = r["edge"]["jump"].as_f64().unwrap();
-    assert!(discard <= input + 1.0, "discard {discard:.2}, input {input:.2}");
+    assert!(
+        discard <= input + 1.0,
+        "discard {discard:.2}, input {input:.2}"
+    );
     assert!(
         (discard - jump).abs() < 0.3 * jump,
         "discard {discard:.2}, jump {jump:.2}"
@@ -328,7 +349,10 @@ fn the_view_page_shows_the_seams_closing() {
     assert_eq!(by_page["s3tc"], false);
     for mode in ["regular", "seam_aware"] {
         let (gpu, page) = (step(&worst, mode), step(&decoded, mode));
-        assert!((gpu - page).abs() < 0.5, "{mode}: GPU {gpu:.2}, page {page:.2}");
+        assert!(
+            (gpu - page).abs() < 0.5,
+            "{mode}: GPU {gpu:.2}, page {page:.2}"
+        );
     }
     eprintln!("decoded in the page: steps {decoded:?}");
     let _ = std::fs::remove_dir_all(&scratch);
@@ -369,7 +393,10 @@ fn seamstress_view_serves_a_process_folder() {
         .unwrap();
     let url = line.trim().to_string();
     let check = || {
-        assert!(url.starts_with("http://127.0.0.1:") && url.ends_with("/view"), "{url}");
+        assert!(
+            url.starts_with("http://127.0.0.1:") && url.ends_with("/view"),
+            "{url}"
+        );
         let client = http();
         let page = client.get(&url).send().unwrap().text().unwrap();
         assert!(page.contains("/v1/view/assets/view.js"), "{page}");
@@ -378,17 +405,25 @@ fn seamstress_view_serves_a_process_folder() {
         assert_eq!(job["state"], "succeeded");
         let files = &job["report"]["textures"][0]["files"];
         for key in ["dds", "regular", "input", "charts", "edges", "erased"] {
-            let name = files[key].as_str().unwrap_or_else(|| panic!("no {key}: {files}"));
+            let name = files[key]
+                .as_str()
+                .unwrap_or_else(|| panic!("no {key}: {files}"));
             let mut body = Vec::new();
             let resp = client.get(format!("{base}/files/{name}")).send().unwrap();
             assert_eq!(resp.status(), 200, "{name}");
             resp.take(u64::MAX).read_to_end(&mut body).unwrap();
             assert_eq!(body, std::fs::read(out.join(name)).unwrap(), "{name}");
         }
-        let outside = client.get(format!("{base}/files/..%2Freport.json")).send().unwrap();
+        let outside = client
+            .get(format!("{base}/files/..%2Freport.json"))
+            .send()
+            .unwrap();
         assert_eq!(outside.status(), 404);
         let three = client
-            .get(url.replace("/v1/jobs/local/view", "/v1/view/assets/three/build/three.module.js"))
+            .get(url.replace(
+                "/v1/jobs/local/view",
+                "/v1/view/assets/three/build/three.module.js",
+            ))
             .send()
             .unwrap();
         assert_eq!(three.status(), 200);

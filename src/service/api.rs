@@ -44,7 +44,11 @@ pub fn routes() -> Vec<(Method, &'static str, MethodRouter<Shared>)> {
             "/v1/jobs/{id}/files/{*name}",
             get(super::download::get_file),
         ),
-        (Method::GET, "/v1/jobs/{id}/view", get(super::view::job_page)),
+        (
+            Method::GET,
+            "/v1/jobs/{id}/view",
+            get(super::view::job_page),
+        ),
         (Method::GET, "/v1/view", get(super::view::list_page)),
         (
             Method::GET,

@@ -52,7 +52,11 @@ mod tests {
     #[test]
     fn pages_import_only_embedded_files() {
         // Every module the pages load by absolute path is served.
-        for page in [JOB_PAGE, LIST_PAGE, std::str::from_utf8(asset("view.js").unwrap().bytes).unwrap()] {
+        for page in [
+            JOB_PAGE,
+            LIST_PAGE,
+            std::str::from_utf8(asset("view.js").unwrap().bytes).unwrap(),
+        ] {
             for (i, _) in page.match_indices("/v1/view/assets/") {
                 let rest = &page[i + "/v1/view/assets/".len()..];
                 let end = rest.find(['"', '\'']).unwrap();
