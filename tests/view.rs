@@ -302,11 +302,18 @@ fn the_view_page_shows_the_seams_closing() {
         r["load_ms"], r["s3tc"]
     );
     eprintln!("worst closed seam {}: steps {worst:?}", r["edge"]);
-    // The README's picture: the seam-aware encoding at the worst seam.
-    let _ = std::fs::copy(
-        artefacts().join("fox-gpu-seam_aware.png"),
-        artefacts().join("readme-seam-aware.png"),
-    );
+    // The README's picture (docs/view-fox-seam.png): a band across the
+    // seam from each version, side by side.
+    let mut strip = image::RgbImage::new(WIDTH, HEIGHT);
+    let band = WIDTH / 4;
+    for (k, mode) in ["input", "regular", "seam_aware", "discard"].iter().enumerate() {
+        let shot = image::open(artefacts().join(format!("fox-gpu-{mode}.png")))
+            .unwrap()
+            .to_rgb8();
+        let view = image::imageops::crop_imm(&shot, (WIDTH - band) / 2, 0, band, HEIGHT);
+        image::imageops::replace(&mut strip, &view.to_image(), i64::from(band) * k as i64, 0);
+    }
+    strip.save(artefacts().join("readme-strip.png")).unwrap();
 
     assert_eq!(
         r["s3tc"], true,
