@@ -24,3 +24,4 @@ pub mod plural;
 pub mod resize;
 pub mod seam;
 pub mod service;
+pub mod view;

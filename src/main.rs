@@ -2,7 +2,7 @@
 //! or a batch of them, `serve` runs the HTTP service.
 
 use std::io::Write;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use anyhow::Context;
@@ -64,6 +64,16 @@ enum Command {
     /// Run workers only, on a cluster's shared job store and files: claims
     /// and runs jobs, serves /metrics and /healthz.
     Worker(Box<seamstress::service::WorkerArgs>),
+    /// Show a folder `process` wrote in the browser: the model in 3D, its
+    /// texture as input, erased, regular and seam-aware BC1 and with filter
+    /// taps discarded, and its seams. Serves on 127.0.0.1 and prints the URL.
+    View {
+        /// One model's output folder (it holds report.json).
+        dir: PathBuf,
+        /// The port; 0 takes any free one.
+        #[arg(long, default_value_t = 0)]
+        port: u16,
+    },
     /// One job of a server's worker, in a process of its own.
     #[command(hide = true)]
     RunJob {
@@ -239,6 +249,10 @@ struct OptionArgs {
     /// textures.
     #[arg(long)]
     lod_files: bool,
+    /// Also write <name>.regular.dds: level 0's regular BC1 encoding, for
+    /// `seamstress view` to show beside the seam-aware one.
+    #[arg(long)]
+    keep_regular: bool,
 }
 
 impl OptionArgs {
@@ -265,6 +279,7 @@ impl OptionArgs {
             pictures: self.pictures,
             lod: self.lod.unwrap_or_default(),
             lod_files: self.lod_files,
+            keep_regular: self.keep_regular,
         }
     }
 }
@@ -315,6 +330,10 @@ fn main() -> ExitCode {
             Ok(()) => ExitCode::SUCCESS,
             Err(e) => fail(format, 1, &format!("{}: {e}", dir.display())),
         },
+        Command::View { dir, port } => match view(&dir, port) {
+            Ok(()) => ExitCode::SUCCESS,
+            Err(e) => fail(format, 1, &e.to_string()),
+        },
         Command::Serve(args) => match seamstress::service::serve(*args) {
             Ok(()) => ExitCode::SUCCESS,
             Err(e) => fail(format, if e.is_usage() { 2 } else { 1 }, &e.to_string()),
@@ -324,6 +343,19 @@ fn main() -> ExitCode {
             Err(e) => fail(format, if e.is_usage() { 2 } else { 1 }, &e.to_string()),
         },
     }
+}
+
+/// `seamstress view`: serves the folder until Ctrl-C; the URL goes to
+/// standard output, for a person or a script to open.
+fn view(dir: &Path, port: u16) -> anyhow::Result<()> {
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?;
+    runtime.block_on(seamstress::view::serve_folder(dir, port, |url| {
+        println!("{url}");
+        let _ = std::io::stdout().flush();
+    }))?;
+    Ok(())
 }
 
 /// Ends the program with `status`, saying why on standard error: one line,
@@ -355,6 +387,7 @@ fn log_filter(cli: &Cli, env: Option<String>) -> String {
         Command::Process(a) => (1, a.batch.quiet),
         Command::Submit(a) => (1, a.batch.quiet),
         Command::RunJob { .. } => (1, false),
+        Command::View { .. } => (1, false),
         Command::Serve(_) | Command::Worker(_) => (2, false),
     };
     // As before the flags: a SEAMSTRESS_LOG that does not parse is ignored.

@@ -1,5 +1,5 @@
 //! Rewritten models as a browser shows them: headless Chromium renders them
-//! with three.js (vendored in `tests/webgl/three/`) through WebGL on
+//! with three.js (vendored in `assets/view/three/`) through WebGL on
 //! SwiftShader, and `tests/webgl/render.html` reports whether the textures
 //! came from the DDS files (`MSFT_texture_dds`) rather than the PNG fallback,
 //! and whether the model shows its texture's colours rather than black.
@@ -264,6 +264,11 @@ fn dds_textures_render_in_webgl() {
     copy_dir(
         &PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/webgl"),
         &root,
+    );
+    // three.js lives with the view page, which serves it.
+    copy_dir(
+        &PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("assets/view/three"),
+        &root.join("three"),
     );
     for case in CASES {
         process(case.asset, &root.join(case.tag), case.extra);

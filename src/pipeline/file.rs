@@ -52,6 +52,24 @@ pub(super) fn texture_file(
     Ok((format!("{}.{extension}", b.name), bytes))
 }
 
+/// `<name>.regular.dds`: level 0's regular BC1 (or BC3) encoding, a DDS
+/// with the legacy header whatever the job's container, since it exists
+/// for the view page, whose loader reads DDS.
+pub(super) fn regular_file(
+    b: &TextureBinding,
+    level: MipLevel,
+) -> Result<(String, Vec<u8>), PipelineError> {
+    let color_space = if b.srgb {
+        ColorSpace::Srgb
+    } else {
+        ColorSpace::Linear
+    };
+    let fail = |e| PipelineError::encode(&b.name, e);
+    let texture = encoded(vec![Shipped::Bc1(level)], color_space).map_err(fail)?;
+    let bytes = write_dds(&texture, DdsHeader::Legacy).map_err(fail)?;
+    Ok((format!("{}.regular.dds", b.name), bytes))
+}
+
 fn encoded(
     levels: Vec<Shipped>,
     color_space: ColorSpace,

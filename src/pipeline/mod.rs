@@ -19,6 +19,7 @@ pub mod options;
 mod progress;
 pub mod summary;
 mod texture;
+mod view_files;
 
 pub use alpha::{AlphaFormat, AlphaOption, AlphaReport};
 pub use job::{admit, run_job, JobError, JobInput, JobOutput, JobSettings, JobTimings};
@@ -210,6 +211,21 @@ pub struct Files {
     /// `<name>.seams.png`, when pictures were asked for.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub seams: Option<String>,
+    /// `<name>.charts.png`, with pictures: each texel's chart, for a
+    /// renderer that discards the filter taps outside a fragment's chart.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub charts: Option<String>,
+    /// `<name>.edges.json`, with pictures: every seam edge with its verdict
+    /// and residuals, for the view page to find and draw the seams.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub edges: Option<String>,
+    /// `<name>.regular.dds`, with `keep_regular`: level 0's regular BC1.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub regular: Option<String>,
+    /// `<name>.input.png`, with `keep_regular`: the input texture as it
+    /// was processed (after `resize`), for the view page to compare with.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub input: Option<String>,
 }
 
 #[derive(Clone, Debug, Serialize)]

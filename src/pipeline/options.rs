@@ -113,7 +113,9 @@ pub struct ProcessOptions {
     /// What the DDS keeps of alpha.
     #[serde(default = "alpha_before_keeping")]
     pub alpha: AlphaOption,
-    /// Draw `<name>.seams.png` for each texture.
+    /// Draw `<name>.seams.png` for each texture, and write what the view
+    /// page draws the seams and the discarded filter taps from
+    /// (`<name>.charts.png`, `<name>.edges.json`).
     #[serde(default = "pictures_before_option")]
     pub pictures: bool,
     /// Seam-aware levels of detail: the ratios of each mesh's triangles
@@ -123,6 +125,11 @@ pub struct ProcessOptions {
     /// Also write each level of detail as its own `<name>.lodN.glb`.
     #[serde(default)]
     pub lod_files: bool,
+    /// Also write the regular BC1 encoding of level 0 as
+    /// `<name>.regular.dds`, for the view page to show beside the
+    /// seam-aware one.
+    #[serde(default)]
+    pub keep_regular: bool,
 }
 
 fn default_seam_tolerance() -> f64 {
@@ -165,6 +172,7 @@ impl Default for ProcessOptions {
             pictures: false,
             lod: LodRatios::default(),
             lod_files: false,
+            keep_regular: false,
         }
     }
 }

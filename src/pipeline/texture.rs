@@ -14,12 +14,13 @@ use serde::Serialize;
 
 use super::alpha::{self, AlphaFormat, AlphaPlan, AlphaReport};
 use super::bc7_level::{self, Bc7Level};
-use super::file::{texture_file, Shipped};
+use super::file::{regular_file, texture_file, Shipped};
 use super::level::{
     encode_level, encode_regular, encode_seam_aware, erase_level, rgb, EncodedLevel, ErasedLevel,
     Rung,
 };
 use super::measure::Measure;
+use super::view_files;
 use super::Container;
 use super::{
     AlphaSeamSummary, Files, Format, Metrics, OutputFile, PipelineError, ProcessOptions, SeamShare,
@@ -222,6 +223,10 @@ pub(super) fn finish_texture(
             ktx2: None,
             erased: erased_name,
             seams: None,
+            charts: None,
+            edges: None,
+            regular: None,
+            input: None,
         },
         timings_ms: Timings {
             load: load_ms,
@@ -262,6 +267,17 @@ pub(super) fn finish_texture(
                     r.dds = alpha_figures(false);
                 }
                 decoded = Some((regular.ideal, shipped.ideal));
+                if opts.keep_regular {
+                    let level = MipLevel {
+                        width: tex.width as u32,
+                        height: tex.height as u32,
+                        blocks: enc.regular,
+                        alpha: enc.alpha_regular,
+                    };
+                    let (name, bytes) = regular_file(b, level)?;
+                    report.files.regular = Some(name.clone());
+                    files.push(OutputFile { name, bytes });
+                }
                 Shipped::Bc1(MipLevel {
                     width: tex.width as u32,
                     height: tex.height as u32,
@@ -314,6 +330,17 @@ pub(super) fn finish_texture(
         files.push(OutputFile { name, bytes });
         report.timings_ms.dds = ms_since(t);
     }
+    if opts.keep_regular {
+        let name = format!("{}.input.png", b.name);
+        let bytes = tex
+            .encode_png()
+            .map_err(|e| PipelineError::encode(&b.name, e))?;
+        files.push(OutputFile {
+            name: name.clone(),
+            bytes,
+        });
+        report.files.input = Some(name);
+    }
     if opts.pictures {
         let t = Instant::now();
         let (regular, shipped) = decoded
@@ -335,6 +362,36 @@ pub(super) fn finish_texture(
             bytes: seams_png(&picture).map_err(|e| PipelineError::encode(&b.name, e))?,
         });
         report.files.seams = Some(name);
+
+        let name = format!("{}.charts.png", b.name);
+        let bytes = view_files::charts_png(&level0.grid, &level0.charts)
+            .map_err(|e| PipelineError::encode(&b.name, e))?;
+        files.push(OutputFile {
+            name: name.clone(),
+            bytes,
+        });
+        report.files.charts = Some(name);
+        let versions = view_files::Versions {
+            input: &input_rgb,
+            erased: &erased_rgb,
+            regular,
+            seam_aware: shipped,
+        };
+        let bytes = view_files::edges_json(
+            &level0.grid,
+            &level0.seams,
+            &level0.verdicts.closed,
+            &level0.verdicts.jump,
+            (!opts.erase_all).then_some(opts.seam_tolerance),
+            &versions,
+        )
+        .map_err(|e| PipelineError::encode(&b.name, e))?;
+        let name = format!("{}.edges.json", b.name);
+        files.push(OutputFile {
+            name: name.clone(),
+            bytes,
+        });
+        report.files.edges = Some(name);
         report.timings_ms.pictures = ms_since(t);
     }
     report.timings_ms.total = ms_since(started);

@@ -44,6 +44,17 @@ pub fn routes() -> Vec<(Method, &'static str, MethodRouter<Shared>)> {
             "/v1/jobs/{id}/files/{*name}",
             get(super::download::get_file),
         ),
+        (
+            Method::GET,
+            "/v1/jobs/{id}/view",
+            get(super::view::job_page),
+        ),
+        (Method::GET, "/v1/view", get(super::view::list_page)),
+        (
+            Method::GET,
+            "/v1/view/assets/{*path}",
+            get(super::view::get_asset),
+        ),
         (Method::GET, "/healthz", get(healthz)),
         (Method::GET, "/readyz", get(readyz)),
         (Method::GET, "/metrics", get(metrics)),

@@ -30,6 +30,7 @@ mod server;
 pub mod sqlite;
 pub mod store;
 pub mod upload;
+mod view;
 mod worker;
 mod worker_role;
 

@@ -9,17 +9,24 @@
 //!    every seam half-edge drawn over it. Hue says the class (closed or left
 //!    as painted); brightness says the edge's residual after BC1.
 //! 2. **Legend**: two rows of swatches, closed then left, from residual 0
-//!    (dim) to `FULL_BRIGHT_LEVELS` or more (bright).
-//! 3. **Close-up strip** (only when some edge is closed): one row per worst
-//!    closed edge (up to `STRIP_ROWS`); each row holds, for `input`,
-//!    `erased`, `bc1` and `seam_aware` in turn, a tile around half-edge `a`
-//!    and a tile around half-edge `b`, at full brightness.
+//!    (dim) to `FULL_BRIGHT_LEVELS` or more (bright), each named.
+//! 3. **Close-up strip** (only when some edge is closed): a title row naming
+//!    the versions, then one row per worst closed edge (up to `STRIP_ROWS`);
+//!    each row holds, for `input`, `erased`, `bc1` and `seam_aware` in turn,
+//!    a tile around half-edge `a` and a tile around half-edge `b`, at full
+//!    brightness, the first with the edge's jump in that version written on it.
+//!
+//! The words are drawn with a bitmap font of its own ([`font`]): the
+//! picture needs a few dozen glyphs, not a font renderer.
 
 use image::codecs::png::PngEncoder;
 use image::{ExtendedColorType, ImageEncoder, Rgb, RgbImage};
 
 use crate::model::{SeamEdge, SeamSet, Wrap};
 use crate::seam::TexelGrid;
+
+mod font;
+use font::{draw_text, text_width, GLYPH_H};
 
 /// What the seams picture shows for one texture (mip level 0).
 pub struct SeamPicture<'a> {
@@ -109,7 +116,8 @@ const MAX_PERIODS: i64 = 4;
 
 /// Legend swatches per class, residual 0 to [`FULL_BRIGHT_LEVELS`].
 const LEGEND_STEPS: u32 = 5;
-const SWATCH_PX: u32 = 12;
+/// As tall as a line of text, which names each row.
+const SWATCH_PX: u32 = TEXT_SCALE * GLYPH_H;
 const SWATCH_GAP: u32 = 2;
 
 /// Close-ups are shown for this many closed edges, the worst first.
@@ -127,6 +135,18 @@ const VERSION_GAP: u32 = 12;
 const TILES_PER_ROW: u32 = 8;
 /// Gap between strip rows.
 const ROW_GAP: u32 = 6;
+
+/// Font pixels are this many picture pixels square.
+const TEXT_SCALE: u32 = 2;
+/// Words on the dark background.
+const TEXT: [u8; 3] = [230, 230, 230];
+/// The strip's title row: a line of text and a gap.
+const TITLE_H: u32 = TEXT_SCALE * GLYPH_H + ROW_GAP;
+/// The strip's versions, as its title row names them.
+const VERSION_NAMES: [&str; 4] = ["INPUT", "ERASED", "REGULAR BC1", "SEAM-AWARE BC1"];
+/// Words over a close-up sit on a box this dark, inset this far.
+const LABEL_BACKGROUND: [u8; 3] = [0, 0, 0];
+const LABEL_PAD: u32 = 2;
 
 /// A pixel rectangle of the picture.
 #[derive(Clone, Copy, Debug)]
@@ -162,12 +182,13 @@ pub fn seams_png(p: &SeamPicture) -> Result<Vec<u8>, PictureError> {
     let strip_top = legend_top + legend_h + MARGIN;
     let strip_h = match rows.len() as u32 {
         0 => 0,
-        n => n * TILE_PX + (n - 1) * ROW_GAP + MARGIN,
+        n => TITLE_H + n * TILE_PX + (n - 1) * ROW_GAP + MARGIN,
     };
+    let legend_w = legend_width(&hues);
     let content_w = if rows.is_empty() {
-        pw
+        pw.max(legend_w)
     } else {
-        pw.max(strip_width())
+        pw.max(strip_width()).max(legend_w)
     };
     let mut img =
         RgbImage::from_pixel(content_w + 2 * MARGIN, strip_top + strip_h, Rgb(BACKGROUND));
@@ -227,7 +248,7 @@ fn encode_png(img: &RgbImage) -> Result<Vec<u8>, PictureError> {
 /// on the edge's two half-edges at matching γ (averaged over γ and over the
 /// three channels). Samples sit at the midpoints of equal γ steps, so the
 /// corners an edge shares with its neighbours are not counted twice.
-fn residual(grid: &TexelGrid, data: &[f32], e: &SeamEdge) -> f64 {
+pub fn residual(grid: &TexelGrid, data: &[f32], e: &SeamEdge) -> f64 {
     let sane = |h: &[[f64; 2]; 2]| h.iter().flatten().all(|c| c.abs() <= MAX_ABS_UV);
     if !sane(&e.a) || !sane(&e.b) {
         return f64::INFINITY;
@@ -277,13 +298,29 @@ fn hue_of(p: &SeamPicture, i: usize) -> [u8; 3] {
     }
 }
 
-/// The hues the legend shows, one row each.
-fn legend_hues(p: &SeamPicture) -> Vec<[u8; 3]> {
-    let mut hues = vec![CLOSED_HUE, LEFT_HUE];
+/// The hues the legend shows, one row each, with their names.
+fn legend_hues(p: &SeamPicture) -> Vec<([u8; 3], &'static str)> {
+    let mut hues = vec![
+        (
+            CLOSED_HUE,
+            "CLOSED (BRIGHTER: LARGER RESIDUAL, 0 TO 8+ LEVELS)",
+        ),
+        (LEFT_HUE, "LEFT AS PAINTED"),
+    ];
     if p.alpha_closed.is_some() {
-        hues.push(ALPHA_LEFT_HUE);
+        hues.push((ALPHA_LEFT_HUE, "COLOUR CLOSED, ALPHA LEFT AS PAINTED"));
     }
     hues
+}
+
+/// The legend's width: its swatches and its longest name.
+fn legend_width(hues: &[([u8; 3], &str)]) -> u32 {
+    let names = hues
+        .iter()
+        .map(|(_, name)| text_width(name, TEXT_SCALE))
+        .max()
+        .unwrap_or(0);
+    LEGEND_STEPS * (SWATCH_PX + SWATCH_GAP) + VERSION_GAP + names
 }
 
 /// The class hue scaled by residual: [`DIM_LINE`] of full at 0, full at
@@ -410,8 +447,8 @@ fn period_maps(wrap: Wrap, lo: f64, hi: f64) -> Vec<(f64, f64)> {
 
 /// Swatches for each class from residual 0 to [`FULL_BRIGHT_LEVELS`]:
 /// closed on the first row, left on the second.
-fn draw_legend(img: &mut RgbImage, hues: &[[u8; 3]], x: u32, y: u32) {
-    for (row, &hue) in hues.iter().enumerate() {
+fn draw_legend(img: &mut RgbImage, hues: &[([u8; 3], &str)], x: u32, y: u32) {
+    for (row, &(hue, name)) in hues.iter().enumerate() {
         let top = y + row as u32 * (SWATCH_PX + SWATCH_GAP);
         for s in 0..LEGEND_STEPS {
             let level = FULL_BRIGHT_LEVELS * f64::from(s) / f64::from(LEGEND_STEPS - 1);
@@ -423,6 +460,8 @@ fn draw_legend(img: &mut RgbImage, hues: &[[u8; 3]], x: u32, y: u32) {
             };
             fill(img, r, edge_colour(hue, level));
         }
+        let text_x = x + LEGEND_STEPS * (SWATCH_PX + SWATCH_GAP) + VERSION_GAP;
+        draw_text(img, text_x, top, name, TEXT_SCALE, Rgb(TEXT));
     }
 }
 
@@ -440,10 +479,17 @@ fn strip_width() -> u32 {
 /// One row per edge in `rows`: for each version, the crops around half-edge
 /// `a` and half-edge `b`.
 fn draw_strip(img: &mut RgbImage, p: &SeamPicture, rows: &[usize], top: u32) {
+    if rows.is_empty() {
+        return;
+    }
+    for (v, name) in VERSION_NAMES.iter().enumerate() {
+        let x = MARGIN + tile_x(2 * v as u32);
+        draw_text(img, x, top, name, TEXT_SCALE, Rgb(TEXT));
+    }
     let versions = [p.input, p.erased, p.bc1, p.seam_aware];
     for (row, &e) in rows.iter().enumerate() {
         let edge = &p.seams.seams[e];
-        let y = top + row as u32 * (TILE_PX + ROW_GAP);
+        let y = top + TITLE_H + row as u32 * (TILE_PX + ROW_GAP);
         let mut k = 0;
         for data in versions {
             for half in [edge.a, edge.b] {
@@ -454,10 +500,46 @@ fn draw_strip(img: &mut RgbImage, p: &SeamPicture, rows: &[usize], top: u32) {
                     h: TILE_PX,
                 };
                 draw_tile(img, p.grid, data, half, r);
+                if k % 2 == 0 {
+                    draw_label(img, r, &jump_label(residual(p.grid, data, edge)));
+                }
                 k += 1;
             }
         }
     }
+}
+
+/// What a close-up says of its version: the edge's jump in 8-bit levels.
+fn jump_label(levels: f64) -> String {
+    if levels.is_finite() {
+        format!("JUMP {levels:.1}")
+    } else {
+        "JUMP -".to_string()
+    }
+}
+
+/// `text` at the bottom-left corner of tile `r`, on a dark box so that it
+/// reads over any texture.
+fn draw_label(img: &mut RgbImage, r: Rect, text: &str) {
+    let (w, h) = (
+        text_width(text, TEXT_SCALE) + 2 * LABEL_PAD,
+        TEXT_SCALE * GLYPH_H + 2 * LABEL_PAD,
+    );
+    let boxed = Rect {
+        x: r.x,
+        y: r.y + r.h - h,
+        w: w.min(r.w),
+        h,
+    };
+    fill(img, boxed, Rgb(LABEL_BACKGROUND));
+    draw_text(
+        img,
+        boxed.x + LABEL_PAD,
+        boxed.y + LABEL_PAD,
+        text,
+        TEXT_SCALE,
+        Rgb(TEXT),
+    );
 }
 
 /// A [`CROP_TEXELS`]² crop of `data` centred on the half-edge's midpoint,
@@ -583,6 +665,8 @@ mod tests {
     const PANEL: u32 = 512;
     const LEGEND_H: u32 = 2 * SWATCH_PX + SWATCH_GAP;
     const STRIP_TOP: u32 = MARGIN + PANEL + MARGIN + LEGEND_H + MARGIN;
+    /// The first row of close-ups, below the title row.
+    const ROWS_TOP: u32 = STRIP_TOP + TITLE_H;
 
     /// A 32² texture with two charts (rectangles) and three seams:
     /// 0, closed, whose sides agree in `seam_aware` (residual 0);
@@ -756,14 +840,19 @@ mod tests {
     fn strip_exists_iff_an_edge_is_closed() {
         let f = fixture();
         let none = f.draw(&[false; 3]);
-        assert_eq!(none.dimensions(), (PANEL + 2 * MARGIN, STRIP_TOP));
+        // The legend's words are wider than a small panel.
+        let legend_w = legend_width(&legend_hues(&f.picture(&[false; 3])));
+        assert_eq!(
+            none.dimensions(),
+            (PANEL.max(legend_w) + 2 * MARGIN, STRIP_TOP)
+        );
         let one = f.draw(&[false, false, true]);
         assert_eq!(
             one.dimensions(),
-            (strip_width() + 2 * MARGIN, STRIP_TOP + TILE_PX + MARGIN)
+            (strip_width() + 2 * MARGIN, ROWS_TOP + TILE_PX + MARGIN)
         );
         let two = f.draw(&[true, true, false]);
-        let h = STRIP_TOP + 2 * TILE_PX + ROW_GAP + MARGIN;
+        let h = ROWS_TOP + 2 * TILE_PX + ROW_GAP + MARGIN;
         assert_eq!(two.dimensions(), (strip_width() + 2 * MARGIN, h));
     }
 
@@ -775,14 +864,56 @@ mod tests {
         // (16,16) for `b`; texel (6,6) of the crop is off the line (row 64).
         let texel = |tile: u32| {
             let c = 6 * ZOOM + ZOOM / 2;
-            img.get_pixel(MARGIN + tile_x(tile) + c, STRIP_TOP + c).0
+            img.get_pixel(MARGIN + tile_x(tile) + c, ROWS_TOP + c).0
         };
         assert_eq!(texel(0), [204, 77, 51], "input, side a: chart A");
         assert_eq!(texel(6), [128; 3], "seam_aware, side a");
         assert_eq!(texel(7), [230; 3], "seam_aware, side b: the bright patch");
         // The half-edge crosses its tile at row (23.5 - 16 + 0.5) · 8 = 64.
-        let line = img.get_pixel(MARGIN + tile_x(7) + 60, STRIP_TOP + 64);
+        let line = img.get_pixel(MARGIN + tile_x(7) + 60, ROWS_TOP + 64);
         assert_eq!(line.0, CLOSED_HUE);
+    }
+
+    /// The pixels of `text` drawn alone, as (x, y) offsets from its corner.
+    fn lit(text: &str) -> Vec<(u32, u32)> {
+        let mut img = RgbImage::new(text_width(text, TEXT_SCALE) + 1, 20);
+        draw_text(&mut img, 0, 0, text, TEXT_SCALE, Rgb(TEXT));
+        img.enumerate_pixels()
+            .filter(|p| p.2 .0 == TEXT)
+            .map(|p| (p.0, p.1))
+            .collect()
+    }
+
+    fn shows(img: &RgbImage, x: u32, y: u32, text: &str) -> bool {
+        lit(text)
+            .into_iter()
+            .all(|(dx, dy)| img.get_pixel(x + dx, y + dy).0 == TEXT)
+    }
+
+    #[test]
+    fn words_name_the_columns_the_lines_and_each_jump() {
+        let f = fixture();
+        let img = f.draw(&[true, true, false]);
+        for (v, name) in VERSION_NAMES.iter().enumerate() {
+            let x = MARGIN + tile_x(2 * v as u32);
+            assert!(shows(&img, x, STRIP_TOP, name), "{name}");
+        }
+        assert!(!shows(&img, MARGIN + tile_x(2), STRIP_TOP, "INPUT"));
+        let legend_x = MARGIN + LEGEND_STEPS * (SWATCH_PX + SWATCH_GAP) + VERSION_GAP;
+        let legend_top = MARGIN + PANEL + MARGIN;
+        assert!(shows(&img, legend_x, legend_top, "CLOSED"));
+        assert!(shows(
+            &img,
+            legend_x,
+            legend_top + SWATCH_PX + SWATCH_GAP,
+            "LEFT AS PAINTED"
+        ));
+        // Row 0 is edge 1: its seam-aware jump is 0.4 × 255 = 102 levels.
+        let label_y = ROWS_TOP + TILE_PX - TEXT_SCALE * GLYPH_H - LABEL_PAD;
+        let jump = jump_label(residual(&f.grid, &f.seam_aware, &f.seams.seams[1]));
+        assert_eq!(jump, "JUMP 102.0");
+        assert!(shows(&img, MARGIN + tile_x(6) + LABEL_PAD, label_y, &jump));
+        assert!(!shows(&img, MARGIN + tile_x(4) + LABEL_PAD, label_y, &jump));
     }
 
     #[test]
