@@ -37,14 +37,12 @@ const GOOD_ENOUGH: f32 = 4.0;
 /// Effort per level. Measured by `cargo bench --bench bc7` (one thread,
 /// 512² crops of the shared models' base colours; PSNR over RGB, RGBA for
 /// Duck-alpha), beside intel_tex_2 (ISPC):
-/// * `fast`: 57.4–64.5 dB at 2.2–4.3 MPix/s; on Fox, Duck, blub and
-///   WaterBottle above ISPC basic's PSNR already.
+/// * `fast`: above ISPC very_fast on every image (50.2–64.5 dB) at
+///   2.2–4.3 MPix/s.
 /// * `default`: above ISPC basic on every image (Fox 61.91 against 61.08,
 ///   Duck 61.69/61.45, blub 65.11/64.52, CesiumMan 50.96/50.64,
-///   WaterBottle 58.12/57.09, Duck-alpha 54.70/54.08) at 0.55–1.2× its
-///   speed (Fox 1.15 against 2.06 MPix/s, the slowest ratio). Three
-///   two-subset and one three-subset partition per mode: the next few add
-///   under 0.1 dB for half the speed.
+///   WaterBottle 58.12/57.09, Duck-alpha 54.70/54.08) at 0.53–1.18× its
+///   speed (WaterBottle 1.20 against 2.26 MPix/s, the slowest ratio).
 /// * `best`: above ISPC slow on every image (Fox 63.38/61.84, Duck
 ///   62.87/62.64, blub 65.45/64.68, CesiumMan 51.16/50.91, WaterBottle
 ///   58.42/57.85, Duck-alpha 55.01/54.22) at 0.4–1.5× its speed.
