@@ -30,8 +30,10 @@ pub struct Effort {
 }
 
 /// A block error (weighted squared 8-bit levels over the 16 texels) below
-/// which `fast` and `default` stop trying modes: half a level of error
-/// per texel on average, far under what any later mode could still gain.
+/// which `fast` and `default` stop trying modes: half a level per texel in
+/// RMS. Together with the projected 4-bit index search and mode 4 left to
+/// `best` on opaque blocks, it took `default` on the bench's Fox crop from
+/// 0.72 to 1.41 MPix/s for 0.9 dB (62.80 to 61.91, still above ISPC basic).
 const GOOD_ENOUGH: f32 = 4.0;
 
 /// Effort per level. Measured by `cargo bench --bench bc7` (one thread,
