@@ -9,7 +9,8 @@
 //!
 //! Images: the shared models' base-colour textures (Fox, Duck, blub,
 //! CesiumMan, WaterBottle), cropped to their central `BC7_BENCH_CROP`²
-//! texels (default 512; 0 keeps the whole texture).
+//! texels (default 512; 0 keeps the whole texture), and Duck-alpha: Duck's
+//! crop with an alpha channel made from CesiumMan's.
 //!
 //! Then seam-aware BC7 on the models' erased textures (the engine's PNG
 //! output): seam_rms (8-bit levels, over the seams of the first texture's
@@ -133,6 +134,25 @@ fn load_images() -> Vec<Image> {
         match gltf_image0(&path).and_then(|b| decode(name, &b, crop)) {
             Ok(img) => images.push(img),
             Err(e) => println!("skipping {name}: {e}"),
+        }
+    }
+    // No shared base colour has alpha: Duck's takes CesiumMan's red as
+    // alpha, cut to 0 below 60 (hard cut-out edges beside soft ramps).
+    let duck = images.iter().find(|i| i.name == "Duck");
+    let cesium = images.iter().find(|i| i.name == "CesiumMan");
+    if let (Some(d), Some(c)) = (duck, cesium) {
+        if (d.width, d.height) == (c.width, c.height) {
+            let mut rgba = d.rgba.clone();
+            for (t, s) in rgba.chunks_exact_mut(4).zip(c.rgba.chunks_exact(4)) {
+                t[3] = if s[0] < 60 { 0 } else { s[0] };
+            }
+            images.push(Image {
+                name: "Duck-alpha".into(),
+                width: d.width,
+                height: d.height,
+                alpha: bc7::has_alpha(&rgba),
+                rgba,
+            });
         }
     }
     if let Ok(only) = std::env::var("BC7_BENCH_ONLY") {
@@ -439,7 +459,7 @@ fn main() {
                 .collect();
             println!(
                 "{:<14} {:>9} {:<22} {:>9.3} {:>11.3}  {}",
-                format!("{}{}", img.name, if img.alpha { "+a" } else { "" }),
+                img.name,
                 format!("{}x{}", img.width, img.height),
                 enc.label(),
                 psnr,
