@@ -306,7 +306,10 @@ fn the_view_page_shows_the_seams_closing() {
     // seam from each version, side by side.
     let mut strip = image::RgbImage::new(WIDTH, HEIGHT);
     let band = WIDTH / 4;
-    for (k, mode) in ["input", "regular", "seam_aware", "discard"].iter().enumerate() {
+    for (k, mode) in ["input", "regular", "seam_aware", "discard"]
+        .iter()
+        .enumerate()
+    {
         let shot = image::open(artefacts().join(format!("fox-gpu-{mode}.png")))
             .unwrap()
             .to_rgb8();
