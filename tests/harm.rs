@@ -225,7 +225,9 @@ fn pictures_are_drawn_when_asked() {
     assert!(png.width() >= 128 && png.height() >= 128);
     let plain = run("cube/cube_gradient_128.glb", &ProcessOptions::default());
     assert!(plain.report.textures[0].files.seams.is_none());
-    assert_eq!(plain.files.len() + 1, out.files.len());
+    // The picture, and the chart IDs and seam edges the view page reads.
+    assert!(t.files.charts.is_some() && t.files.edges.is_some());
+    assert_eq!(plain.files.len() + 3, out.files.len());
 }
 
 /// A hand-painted atlas (white panels on black, cut along the paint): the

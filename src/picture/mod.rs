@@ -16,7 +16,7 @@
 //!    a tile around half-edge `a` and a tile around half-edge `b`, at full
 //!    brightness, the first with the edge's jump in that version written on it.
 //!
-//! The words are drawn with a bitmap font of its own ([`font`]): the
+//! The words are drawn with a bitmap font of its own (`font.rs`): the
 //! picture needs a few dozen glyphs, not a font renderer.
 
 use image::codecs::png::PngEncoder;

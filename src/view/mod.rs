@@ -2,7 +2,7 @@
 //! side, and the job list. The page is plain HTML and JavaScript over the
 //! vendored three.js, embedded in the binary so that it works offline and
 //! needs no build step. The service serves it (`service/view.rs`), and so
-//! does `seamstress view` over a folder `process` wrote ([`serve`]).
+//! does `seamstress view` over a folder `process` wrote ([`serve_folder`]).
 
 mod assets;
 mod serve;
