@@ -70,8 +70,15 @@ impl LodRatios {
 impl std::str::FromStr for LodRatios {
     type Err = RatiosError;
 
-    /// Comma-separated ratios; an empty string is no levels.
+    /// Comma-separated ratios, in brackets or not (a query parameter
+    /// holds the list as clients write it, `[0.5,0.25]` or `[]`); an empty
+    /// list is no levels.
     fn from_str(s: &str) -> Result<Self, Self::Err> {
+        let s = s.trim();
+        let s = s
+            .strip_prefix('[')
+            .and_then(|inner| inner.strip_suffix(']'))
+            .unwrap_or(s);
         let mut ratios = Vec::new();
         for part in s.split(',').map(str::trim).filter(|p| !p.is_empty()) {
             ratios.push(
@@ -134,6 +141,12 @@ mod tests {
     fn ratios_read_from_arrays_and_strings() {
         let a: LodRatios = serde_json::from_str("[0.5, 0.25]").unwrap();
         let s: LodRatios = serde_json::from_str("\"0.5,0.25\"").unwrap();
+        // As a query parameter carries the list a client sends.
+        let q: LodRatios = serde_json::from_str("\"[0.5,0.25]\"").unwrap();
+        assert_eq!(q, s);
+        assert!(serde_json::from_str::<LodRatios>("\"[]\"")
+            .unwrap()
+            .is_empty());
         assert_eq!(a, s);
         assert_eq!(a.as_slice(), [0.5, 0.25]);
         assert_eq!(serde_json::to_string(&a).unwrap(), "[0.5,0.25]");
