@@ -31,10 +31,12 @@ RUN mkdir -p src benches \
     && rm -rf src benches
 COPY src ./src
 COPY benches ./benches
-# Compiled in: the PostgreSQL job store's migrations (sqlx::migrate!) and
-# the API description the server serves (include_str!).
+# Compiled in: the PostgreSQL job store's migrations (sqlx::migrate!), the
+# API description the server serves, and the view page with its three.js
+# (include_str!, include_bytes!).
 COPY migrations ./migrations
 COPY openapi.yaml ./
+COPY assets ./assets
 # The stub build left fresh fingerprints; make sure the real sources win.
 RUN touch src/main.rs src/lib.rs && cargo build --release --locked --bin seamstress
 
