@@ -43,8 +43,7 @@ struct Search<'a> {
 
 impl Search<'_> {
     fn texel(&self, b: usize, k: usize) -> Option<usize> {
-        let (x, y) = ((b % self.bw) * 4 + k % 4, (b / self.bw) * 4 + k / 4);
-        (x < self.p.width && y < self.p.height).then(|| y * self.p.width + x)
+        crate::bc1::block_texel((self.p.width, self.p.height), self.bw, b, k)
     }
 
     fn set(&mut self, b: usize, block: &AlphaBlock) {

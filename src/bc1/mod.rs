@@ -109,6 +109,20 @@ pub fn block_dims(width: usize, height: usize) -> (usize, usize) {
     (width.div_ceil(4).max(1), height.div_ceil(4).max(1))
 }
 
+/// Texel index of slot `k` (row-major, 0–15) of block `b` of a `width`-wide
+/// image `bw` blocks across, or `None` where the slot is padding past the
+/// image.
+#[inline]
+pub fn block_texel(
+    (width, height): (usize, usize),
+    bw: usize,
+    b: usize,
+    k: usize,
+) -> Option<usize> {
+    let (x, y) = ((b % bw) * 4 + k % 4, (b / bw) * 4 + k / 4);
+    (x < width && y < height).then(|| y * width + x)
+}
+
 /// Encodes one block of texels (row-major, RGB in \[0, 1\]; values outside
 /// are clamped, NaN counts as 0).
 pub fn encode_block(texels: &[[f32; 3]; 16], level: Level) -> Block {

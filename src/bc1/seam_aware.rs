@@ -387,8 +387,7 @@ impl Layout {
 
     /// Texel index of slot `k` of block `b`, or `None` in the padding.
     fn texel(&self, p: &Problem, b: usize, k: usize) -> Option<usize> {
-        let (x, y) = ((b % self.bw) * 4 + k % 4, (b / self.bw) * 4 + k / 4);
-        (x < p.width && y < p.height).then(|| y * p.width + x)
+        crate::bc1::block_texel((p.width, p.height), self.bw, b, k)
     }
 }
 

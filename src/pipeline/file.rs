@@ -26,11 +26,7 @@ pub(super) fn texture_file(
     levels: Vec<Shipped>,
     opts: &ProcessOptions,
 ) -> Result<(String, Vec<u8>), PipelineError> {
-    let color_space = if b.srgb {
-        ColorSpace::Srgb
-    } else {
-        ColorSpace::Linear
-    };
+    let color_space = color_space(b);
     let fail = |e| PipelineError::encode(&b.name, e);
     let texture = encoded(levels, color_space).map_err(fail)?;
     let (extension, bytes) = match opts.container {
@@ -59,15 +55,21 @@ pub(super) fn regular_file(
     b: &TextureBinding,
     level: MipLevel,
 ) -> Result<(String, Vec<u8>), PipelineError> {
-    let color_space = if b.srgb {
-        ColorSpace::Srgb
-    } else {
-        ColorSpace::Linear
-    };
+    let color_space = color_space(b);
     let fail = |e| PipelineError::encode(&b.name, e);
     let texture = encoded(vec![Shipped::Bc1(level)], color_space).map_err(fail)?;
     let bytes = write_dds(&texture, DdsHeader::Legacy).map_err(fail)?;
     Ok((format!("{}.regular.dds", b.name), bytes))
+}
+
+/// How the texture's values are encoded: sRGB for colour (base colour,
+/// emissive), linear for data.
+fn color_space(b: &TextureBinding) -> ColorSpace {
+    if b.srgb {
+        ColorSpace::Srgb
+    } else {
+        ColorSpace::Linear
+    }
 }
 
 fn encoded(

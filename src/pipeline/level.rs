@@ -14,7 +14,7 @@ use crate::bc1::punch::punch_through;
 use crate::bc1::seam_aware::{optimise, Problem, SeamAwareOptions};
 use crate::bc1::{self, Block};
 use crate::model::{find_seams, SeamSet, Texture, TextureBinding, UvTriangle};
-use crate::seam::charts::{Charts, HARM_PSNR_DB};
+use crate::seam::charts::{harmed, Charts, HARM_PSNR_DB};
 use crate::seam::classify::{classify, ClassifyOptions, SeamVerdicts};
 use crate::seam::erase::{erase, EraseOptions, EraseStats, Mode};
 use crate::seam::masking::{mask, MaskingOptions};
@@ -176,30 +176,28 @@ fn judged_solve(
     (opts, rung): (&ProcessOptions, Rung),
 ) -> Result<(Solved, Vec<ChartHarm>), PipelineError> {
     let run = |closed: &[bool]| solve(b, grid, data, channels, seams, closed, charts, opts);
-    let harmed = |solved: &Solved| charts.harmed(&solved.data, data, channels, compared);
+    let psnr = |solved: &Solved| charts.psnr_per_chart(&solved.data, data, channels, compared);
     let mut solved = run(&verdicts.closed)?;
+    let mut per_chart = psnr(&solved);
     if !opts.erase_all {
         // The middle zone closes only where that repaints no chart.
-        let spared = verdicts.spare(seams, charts, &harmed(&solved));
+        let spared = verdicts.spare(seams, charts, &harmed(&per_chart));
         if spared > 0 {
             tracing::debug!(spared, "seams left to spare their charts");
             solved = run(&verdicts.closed)?;
+            per_chart = psnr(&solved);
         }
-        let still = harmed(&solved);
+        let still = harmed(&per_chart);
         if rung == Rung::Base && still.contains(&true) {
             let spared = verdicts.spare_touching(grid, seams, charts, &still);
             if spared > 0 {
                 tracing::debug!(spared, "seams of every zone left to spare their charts");
                 solved = run(&verdicts.closed)?;
+                per_chart = psnr(&solved);
             }
         }
     }
-    let harm = chart_harm(
-        charts,
-        &b.triangles,
-        charts.psnr_per_chart(&solved.data, data, channels, compared),
-        HarmCause::of(opts),
-    );
+    let harm = chart_harm(charts, &b.triangles, per_chart, HarmCause::of(opts));
     Ok((solved, harm))
 }
 

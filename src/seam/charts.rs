@@ -169,6 +169,14 @@ pub const MIN_CHART_TEXELS: usize = 64;
 /// agree costs a few dB at most.
 pub const HARM_PSNR_DB: f64 = 30.0;
 
+/// Which charts per-chart PSNRs (as [`Charts::psnr_per_chart`] gives them)
+/// put under [`HARM_PSNR_DB`].
+pub fn harmed(psnr: &[Option<f64>]) -> Vec<bool> {
+    psnr.iter()
+        .map(|p| p.is_some_and(|p| p < HARM_PSNR_DB))
+        .collect()
+}
+
 impl Charts {
     /// PSNR (dB) of each chart over the first `compared` channels against
     /// `reference`: `None` for charts under [`MIN_CHART_TEXELS`], infinite
@@ -197,20 +205,6 @@ impl Charts {
             .map(|(s, n)| {
                 (*n >= MIN_CHART_TEXELS).then(|| 10.0 * ((n * compared) as f64 / s).log10())
             })
-            .collect()
-    }
-
-    /// The charts that `image` changed below [`HARM_PSNR_DB`].
-    pub fn harmed(
-        &self,
-        image: &[f32],
-        reference: &[f32],
-        channels: usize,
-        compared: usize,
-    ) -> Vec<bool> {
-        self.psnr_per_chart(image, reference, channels, compared)
-            .into_iter()
-            .map(|p| p.is_some_and(|p| p < HARM_PSNR_DB))
             .collect()
     }
 
