@@ -3,6 +3,9 @@
 //! SwiftShader, and `tests/webgl/render.html` reports whether the textures
 //! came from the DDS files (`MSFT_texture_dds`) rather than the PNG fallback,
 //! and whether the model shows its texture's colours rather than black.
+//! `tests/webgl/ktx2.html` renders models with their BC7 KTX2 files as
+//! three.js's `KTX2Loader` reads them, against the render from the erased
+//! PNGs.
 
 use std::fs::File;
 use std::net::{TcpListener, TcpStream};
@@ -23,8 +26,10 @@ const PAGE_TIMEOUT: Duration = Duration::from_secs(60);
 struct Scratch(PathBuf);
 
 impl Scratch {
-    fn new() -> Scratch {
-        let dir = std::env::temp_dir().join(format!("seamstress-webgl-{}", std::process::id()));
+    /// `tag` tells apart the tests of this file, which run at once.
+    fn new(tag: &str) -> Scratch {
+        let dir =
+            std::env::temp_dir().join(format!("seamstress-webgl-{tag}-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).unwrap();
         Scratch(dir)
@@ -146,10 +151,10 @@ fn result_json(dom: &str) -> Option<Value> {
     serde_json::from_str(&text).ok()
 }
 
-/// Loads `render.html?model=MODEL` in headless Chromium and returns the
-/// page's result, or panics with what Chromium said.
-fn render(port: u16, model: &str, scratch: &Path, tag: &str) -> Value {
-    let url = format!("http://127.0.0.1:{port}/render.html?model={model}");
+/// Loads `PAGE?model=MODEL` in headless Chromium and returns the page's
+/// result, or panics with what Chromium said.
+fn render(port: u16, page: &str, model: &str, scratch: &Path, tag: &str) -> Value {
+    let url = format!("http://127.0.0.1:{port}/{page}?model={model}");
     let stdout_path = scratch.join(format!("{tag}.dom.html"));
     let stderr_path = scratch.join(format!("{tag}.chromium.log"));
     let mut child = Command::new("chromium")
@@ -208,6 +213,22 @@ fn render(port: u16, model: &str, scratch: &Path, tag: &str) -> Value {
     }
 }
 
+/// The folder the pages are served from, in `scratch`: the pages, and
+/// three.js beside them.
+fn www(scratch: &Scratch) -> PathBuf {
+    let root = scratch.0.join("www");
+    copy_dir(
+        &PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/webgl"),
+        &root,
+    );
+    // three.js lives with the view page, which serves it.
+    copy_dir(
+        &PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("assets/view/three"),
+        &root.join("three"),
+    );
+    root
+}
+
 struct Case {
     tag: &'static str,
     asset: &'static str,
@@ -259,17 +280,8 @@ fn dds_textures_render_in_webgl() {
     if !common::CHROMIUM.available() || !common::PYTHON.available() {
         return;
     }
-    let scratch = Scratch::new();
-    let root = scratch.0.join("www");
-    copy_dir(
-        &PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/webgl"),
-        &root,
-    );
-    // three.js lives with the view page, which serves it.
-    copy_dir(
-        &PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("assets/view/three"),
-        &root.join("three"),
-    );
+    let scratch = Scratch::new("dds");
+    let root = www(&scratch);
     for case in CASES {
         process(case.asset, &root.join(case.tag), case.extra);
     }
@@ -280,7 +292,7 @@ fn dds_textures_render_in_webgl() {
         let name = Path::new(case.asset).file_name().unwrap().to_str().unwrap();
         let model = format!("{}/{name}", case.tag);
         let started = Instant::now();
-        let r = render(server.port, &model, &scratch.0, case.tag);
+        let r = render(server.port, "render.html", &model, &scratch.0, case.tag);
         eprintln!("{model}: {r} ({:.1?})", started.elapsed());
 
         let mut fail = |what: String| failures.push(format!("{model}: {what}; result {r}"));
@@ -311,6 +323,214 @@ fn dds_textures_render_in_webgl() {
         if nonblack < MIN_NONBLACK {
             fail(format!(
                 "{nonblack:.3} of its pixels are not black, under {MIN_NONBLACK}"
+            ));
+        }
+    }
+    drop(server);
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+struct Ktx2Case {
+    tag: &'static str,
+    asset: &'static str,
+    extra: &'static [&'static str],
+    /// The KTX2 header's `supercompressionScheme`: 0 none, 2 Zstandard.
+    supercompression: u32,
+    /// As in `Case`: half of what was measured.
+    min_covered: f64,
+}
+
+const KTX2_CASES: &[Ktx2Case] = &[
+    // Every mip level, the default; 212, 106, 53, ...: levels past the
+    // second are not multiples of 4.
+    Ktx2Case {
+        tag: "box_ktx2",
+        asset: "BoxTextured/BoxTextured-glTF/BoxTextured.gltf",
+        extra: &["--format", "bc7", "--container", "ktx2"],
+        supercompression: 0,
+        min_covered: 0.25,
+    },
+    // Zstandard, which KTX2Loader inflates with the WebAssembly decoder
+    // embedded in `zstddec.module.js`; the image is a data URI in the glTF.
+    Ktx2Case {
+        tag: "duck_ktx2",
+        asset: "Duck/Duck.gltf",
+        extra: &["--format", "bc7", "--container", "ktx2", "--zstd", "19"],
+        supercompression: 2,
+        min_covered: 0.12,
+    },
+];
+
+/// `VK_FORMAT_BC7_SRGB_BLOCK`: a base colour texture's format in the KTX2.
+const VK_FORMAT_BC7_SRGB_BLOCK: u32 = 146;
+
+/// With level 0 alone on both, the render from the KTX2 against the one
+/// from the erased PNG: the mean absolute difference per channel, in 0-255
+/// levels, and the share of the model's pixels off by more than 16 in some
+/// channel. Measured 0.06 and 0 on both models (BC7's own error).
+const MAX_LEVEL0_DIFF: f64 = 0.5;
+const MAX_LEVEL0_FAR: f64 = 0.01;
+/// The same with the mip chains, the KTX2's (each level filtered, erased
+/// and encoded on its own) against the one the GPU makes from the PNG,
+/// which filters odd sizes otherwise. Measured 2.3 and 0.074 (the box's
+/// lettering), 0.5 and 0.006 (the duck). With the KTX2 upside down they
+/// are 48 and 0.60, 18 and 0.18.
+const MAX_MIPMAPPED_DIFF: f64 = 5.0;
+const MAX_MIPMAPPED_FAR: f64 = 0.15;
+/// The model without its texture must differ from the PNG render by this
+/// much for the comparisons to tell anything; measured 75 and 99.
+const MIN_UNTEXTURED_DIFF: f64 = 20.0;
+
+/// A mean colour from the page, as `(r, g, b)` to one decimal.
+fn rgb(v: &Value) -> String {
+    let c: Vec<String> = v
+        .as_array()
+        .map(|a| {
+            a.iter()
+                .map(|c| format!("{:.1}", c.as_f64().unwrap_or(f64::NAN)))
+                .collect()
+        })
+        .unwrap_or_default();
+    format!("({})", c.join(", "))
+}
+
+fn u32_at(bytes: &[u8], at: usize) -> u32 {
+    u32::from_le_bytes(bytes[at..at + 4].try_into().unwrap())
+}
+
+/// BC7 KTX2 files as three.js's `KTX2Loader` shows them: `ktx2.html` swaps
+/// each base colour map of the model for the KTX2 file the report names
+/// for its image, and the render must match the one from the erased PNGs.
+#[needs(chromium, python)]
+#[test]
+fn bc7_ktx2_textures_render_through_ktx2loader() {
+    if !common::CHROMIUM.available() || !common::PYTHON.available() {
+        return;
+    }
+    let scratch = Scratch::new("ktx2");
+    let root = www(&scratch);
+    for case in KTX2_CASES {
+        process(case.asset, &root.join(case.tag), case.extra);
+    }
+    let server = Server::start(&root, &scratch.0.join("http.log"));
+
+    let mut failures = Vec::new();
+    for case in KTX2_CASES {
+        let dir = root.join(case.tag);
+        let name = Path::new(case.asset).file_name().unwrap().to_str().unwrap();
+        let model = format!("{}/{name}", case.tag);
+
+        // The files as written: BC7 sRGB, supercompressed as asked; their
+        // level counts, to hold the page's textures to.
+        let report: Value =
+            serde_json::from_slice(&std::fs::read(dir.join("report.json")).unwrap()).unwrap();
+        let mut levels = std::collections::HashMap::new();
+        for t in report["textures"].as_array().unwrap() {
+            let file = t["files"]["ktx2"]
+                .as_str()
+                .expect("files.ktx2 in the report");
+            assert_eq!(t["files"]["dds"], Value::Null, "{model}: {t}");
+            let bytes = std::fs::read(dir.join(file)).unwrap();
+            assert_eq!(
+                u32_at(&bytes, 12),
+                VK_FORMAT_BC7_SRGB_BLOCK,
+                "{model}: {file}"
+            );
+            assert_eq!(u32_at(&bytes, 44), case.supercompression, "{model}: {file}");
+            levels.insert(file.to_string(), u64::from(u32_at(&bytes, 40)));
+        }
+
+        let started = Instant::now();
+        let r = render(server.port, "ktx2.html", &model, &scratch.0, case.tag);
+        let f = |v: &Value| v.as_f64().unwrap_or(f64::NAN);
+        let vs = &r["vs_png"];
+        eprintln!(
+            "{model}: EXT_texture_compression_bptc {}, WEBGL_compressed_texture_s3tc {}, \
+             WEBGL_compressed_texture_s3tc_srgb {}; mean colour PNG {}, KTX2 {}, \
+             untextured {}; against the PNG render: KTX2 level 0 {:.2} ({:.3} far), \
+             KTX2 mipmapped {:.2} ({:.3} far), untextured {:.1} ({:.3} far) ({:.1?})",
+            r["bptc"],
+            r["s3tc"],
+            r["s3tc_srgb"],
+            rgb(&r["mean"]["png"]),
+            rgb(&r["mean"]["ktx2"]),
+            rgb(&r["mean"]["untextured"]),
+            f(&vs["ktx2_level0"]["diff"]),
+            f(&vs["ktx2_level0"]["far"]),
+            f(&vs["ktx2"]["diff"]),
+            f(&vs["ktx2"]["far"]),
+            f(&vs["untextured"]["diff"]),
+            f(&vs["untextured"]["far"]),
+            started.elapsed()
+        );
+        eprintln!("{model}: {r}");
+
+        let mut fail = |what: String| failures.push(format!("{model}: {what}; result {r}"));
+        // Without it WebGL has no BC7 format to upload the KTX2 files as.
+        if r["bptc"] != Value::Bool(true) {
+            fail("WebGL lacks EXT_texture_compression_bptc".into());
+        }
+        let errors = r["errors"].as_array().map_or(0, Vec::len);
+        if errors != 0 {
+            fail(format!("{errors} errors on the page"));
+        }
+        let maps = r["maps"].as_u64().unwrap_or(0);
+        let ktx2_maps = r["ktx2_maps"].as_array().cloned().unwrap_or_default();
+        if maps == 0 || ktx2_maps.len() as u64 != maps {
+            fail(format!(
+                "{} of {maps} base colour maps came from KTX2 files",
+                ktx2_maps.len()
+            ));
+        }
+        for t in &ktx2_maps {
+            let file = t["file"].as_str().unwrap_or_default();
+            if t["compressed"] != Value::Bool(true)
+                || t["format"] != "RGBA_BPTC"
+                || t["color_space"] != "srgb"
+            {
+                fail(format!(
+                    "{file} is not an sRGB BC7 CompressedTexture in three.js: {t}"
+                ));
+            }
+            if t["levels"].as_u64() != levels.get(file).copied() {
+                fail(format!(
+                    "{file} has {} levels in three.js, {:?} in the file",
+                    t["levels"],
+                    levels.get(file)
+                ));
+            }
+        }
+        let covered = f(&r["covered"]);
+        if covered.is_nan() || covered < case.min_covered {
+            fail(format!(
+                "the model covers {covered:.3} of the canvas, under {}",
+                case.min_covered
+            ));
+        }
+        let nonblack = f(&r["nonblack"]);
+        if nonblack.is_nan() || nonblack < MIN_NONBLACK {
+            fail(format!(
+                "{nonblack:.3} of its pixels are not black, under {MIN_NONBLACK}"
+            ));
+        }
+        for (key, max_diff, max_far) in [
+            ("ktx2_level0", MAX_LEVEL0_DIFF, MAX_LEVEL0_FAR),
+            ("ktx2", MAX_MIPMAPPED_DIFF, MAX_MIPMAPPED_FAR),
+        ] {
+            let (diff, far) = (f(&vs[key]["diff"]), f(&vs[key]["far"]));
+            // NaN (no figure) fails too.
+            if diff.is_nan() || far.is_nan() || diff > max_diff || far > max_far {
+                fail(format!(
+                    "the {key} render differs from the PNG one by {diff:.2} levels \
+                     ({far:.3} of the pixels by over 16), over {max_diff} ({max_far})"
+                ));
+            }
+        }
+        let untextured = f(&vs["untextured"]["diff"]);
+        if untextured.is_nan() || untextured < MIN_UNTEXTURED_DIFF {
+            fail(format!(
+                "without its texture the model differs by {untextured:.1} levels only, \
+                 under {MIN_UNTEXTURED_DIFF}: the comparison tells nothing"
             ));
         }
     }
