@@ -1,9 +1,14 @@
-// The job list: state, progress and headline figures, refreshed while a
-// job runs.
+// The job list: state, progress and headline figures, refreshed every two
+// seconds while a job runs, and now and then otherwise for jobs submitted
+// since.
 import { takeFragmentToken, getJson } from './auth.js';
 
 takeFragmentToken();
 const REFRESH_MS = 2000;
+const IDLE_REFRESH_MS = 15000;
+// The states each job was shown in, in order, for a driving browser.
+const shown = {};
+window.seamstressShown = shown;
 const status = document.getElementById('status');
 const body = document.querySelector('#jobs tbody');
 
@@ -46,9 +51,13 @@ async function refresh() {
     setTimeout(refresh, REFRESH_MS * 5);
     return;
   }
+  // The finished jobs' headlines asked for together, not one at a time.
+  const heads = await Promise.all(list.jobs.map((job) => headlineOf(job).catch(() => ['', ''])));
   body.replaceChildren();
   let running = 0;
-  for (const job of list.jobs) {
+  list.jobs.forEach((job, k) => {
+    const states = shown[job.id] || (shown[job.id] = []);
+    if (states[states.length - 1] !== job.state) states.push(job.state);
     const tr = document.createElement('tr');
     cell(tr, job.id.slice(0, 12));
     cell(tr, job.input ? job.input.name : '');
@@ -59,11 +68,12 @@ async function refresh() {
     bar.max = 1;
     bar.value = fraction;
     p.append(bar, ` ${(fraction * 100).toFixed(0)}% ${job.progress ? job.progress.stage : ''}`);
-    const [textures, figures] = await headlineOf(job).catch(() => ['', '']);
+    const [textures, figures] = heads[k];
     cell(tr, textures);
     cell(tr, figures);
     const link = cell(tr, '');
-    if (job.state === 'succeeded') {
+    // The page of a job still running shows its progress, then its model.
+    if (job.state === 'succeeded' || job.state === 'queued' || job.state === 'running') {
       const a = document.createElement('a');
       a.href = `/v1/jobs/${encodeURIComponent(job.id)}/view`;
       a.textContent = 'view';
@@ -71,9 +81,9 @@ async function refresh() {
     }
     if (job.state === 'queued' || job.state === 'running') running += 1;
     body.append(tr);
-  }
+  });
   status.textContent = `${list.jobs.length} jobs` + (running ? `, ${running} in progress (refreshing)` : '');
-  if (running) setTimeout(refresh, REFRESH_MS);
+  setTimeout(refresh, running ? REFRESH_MS : IDLE_REFRESH_MS);
 }
 
 refresh();

@@ -433,12 +433,33 @@ function showLegend() {
   }
 }
 
+const POLL_MS = 1000;
+
+/** The job once it has finished, its progress shown while it runs; and
+ * the states it was seen in on the way. */
+async function finishedJob() {
+  const seen = [];
+  for (;;) {
+    const asked = performance.now();
+    const job = await getJson(jobUrl);
+    if (seen[seen.length - 1] !== job.state) seen.push(job.state);
+    document.getElementById('title').textContent = `${job.input ? job.input.name : 'job'} (${job.state})`;
+    if (job.state !== 'queued' && job.state !== 'running') return { job, seen, asked };
+    const p = job.progress || { stage: job.state, fraction: 0 };
+    say(`The job is ${job.state}: ${p.stage}, ${(p.fraction * 100).toFixed(0)}%. The model loads when it has finished.`);
+    await new Promise((r) => setTimeout(r, POLL_MS));
+  }
+}
+
 async function main() {
-  const job = await getJson(jobUrl);
-  document.getElementById('title').textContent = `${job.input ? job.input.name : 'job'} (${job.state})`;
+  const { job, seen, asked } = await finishedJob();
+  // The load is timed from the page's start, or for a job that was still
+  // running, from the request that found it finished.
+  const ready = seen.length > 1 ? asked : started;
   if (job.state !== 'succeeded' || !job.report) {
-    say(`The job is ${job.state}: nothing to show yet.`);
-    return null;
+    const why = job.error && job.error.message ? `: ${job.error.message}` : '';
+    say(`The job is ${job.state}${why}. Nothing to show.`);
+    return { failed: job.state, seen };
   }
   const report = job.report;
   showFigures(report);
@@ -535,25 +556,36 @@ async function main() {
   }
 
   // Seam lines, and the seams to visit: the worst closed first (by their
-  // input residual), then those left apart.
-  const byUv = indexEdges(meshes.map((m) => m.mesh));
+  // input residual), then those left apart. Each is also found by its
+  // texture and its place in that texture's edges.json, for an address
+  // that names one seam (#seam=N, #texture=I).
   const linePos = [], lineCol = [];
   const stops = [];
-  const seen = new Set();
-  for (const { set } of materials) {
-    for (const e of set.edges) {
+  const bySeam = new Map();
+  report.textures.forEach((tex, ti) => {
+    const set = sets.get(tex.image);
+    const own = meshes.filter((m) => m.tex === tex).map((m) => m.mesh);
+    if (!own.length) return;
+    const byUv = indexEdges(own);
+    const placed = new Map();
+    set.edges.forEach((e, index) => {
       const key = JSON.stringify([e.a, e.b]);
-      if (seen.has(key)) continue;
-      seen.add(key);
+      if (placed.has(key)) {
+        bySeam.set(`${ti}:${index}`, placed.get(key));
+        return;
+      }
       const s = placeSeam(byUv, e, set.size);
-      if (!s) continue;
+      if (!s) return;
       const hue = new THREE.Color(HUES[e.closed ? 'closed' : e.spared ? 'spared' : 'left']);
       const lift = s.normal.clone().multiplyScalar(s.worldPerTexel * 0.05);
       linePos.push(...s.p0.clone().add(lift).toArray(), ...s.p1.clone().add(lift).toArray());
       lineCol.push(...hue.toArray(), ...hue.toArray());
-      stops.push({ edge: e, seam: s });
-    }
-  }
+      const stop = { edge: e, seam: s, texture: ti, index };
+      placed.set(key, stop);
+      bySeam.set(`${ti}:${index}`, stop);
+      stops.push(stop);
+    });
+  });
   stops.sort((x, y) => (y.edge.closed - x.edge.closed) || (y.edge.residual[0] - x.edge.residual[0]));
   const lineGeo = new THREE.BufferGeometry();
   lineGeo.setAttribute('position', new THREE.Float32BufferAttribute(linePos, 3));
@@ -610,24 +642,35 @@ async function main() {
 
   let next = 0;
   const info = document.getElementById('seam-info');
-  const goTo = (k, instant) => {
-    if (!stops.length) return null;
-    const stop = stops[k % stops.length];
+  const visit = (stop, instant) => {
     const [pos, look, up] = seamView(stop.seam);
     fly(pos, look, up, instant);
     const e = stop.edge;
-    info.textContent = `${k % stops.length + 1}/${stops.length}: ${e.closed ? 'closed' : e.spared ? 'spared' : 'left'}, ` +
+    const k = stops.indexOf(stop);
+    info.textContent = `${k + 1}/${stops.length}: ${e.closed ? 'closed' : e.spared ? 'spared' : 'left'}, ` +
       `jump ${e.jump.toFixed(1)}; residual input ${e.residual[0].toFixed(1)}, regular ${e.residual[2].toFixed(1)}, seam-aware ${e.residual[3].toFixed(1)} levels`;
+    next = k + 1;
     return stop;
   };
-  document.getElementById('next').onclick = () => { goTo(next, false); next += 1; };
+  const goTo = (k, instant) => (stops.length ? visit(stops[k % stops.length], instant) : null);
+  /** Edge `index` of texture `ti`'s edges.json, if it lies on the model. */
+  const goToSeam = (ti, index, instant) => {
+    const stop = bySeam.get(`${ti}:${index}`);
+    return stop ? visit(stop, instant) : null;
+  };
+  document.getElementById('next').onclick = () => goTo(next, false);
 
   const decoding = gpuS3tc ? 'DDS decoded by the GPU (WEBGL_compressed_texture_s3tc)'
     : 'DDS decoded in the page with the ideal palette: this browser offers no S3TC';
   say(`${decoding}. Drag to turn, wheel to zoom.`);
+  if (params.has('seam')) {
+    const ti = Number(params.get('texture')) || 0;
+    if (!goToSeam(ti, Number(params.get('seam')), true)) say(`No seam ${params.get('seam')} of texture ${ti} on the model.`);
+  }
   renderer.render(scene, camera);
-  const loadMs = performance.now() - started;
-  return { setMode, goTo, lines, stops, missing, loadMs };
+  const loadMs = performance.now() - ready;
+  const waitedMs = ready - started;
+  return { setMode, goTo, goToSeam, lines, stops, missing, loadMs, waitedMs, seen };
 }
 
 /** Skinned meshes need their bones' matrices before a vertex is placed. */
@@ -642,10 +685,18 @@ function updateSkeletons(root) {
   return any;
 }
 
-/** With #probe=K: for each version, the camera on stop K, a screenshot and
- * where the seam lies on it, written into <pre id="result"> for a test. */
-function probe(view, k) {
-  const stop = view.goTo(k, true);
+/** With #probe: for each version, a screenshot and where the seam lies on
+ * it, written into <pre id="result"> for a test. The camera is on the seam
+ * #seam names, or on stop K of "next seam" (#probe=K), or, with
+ * #probe=overview, where the page opened it, on the whole model. */
+function probe(view, which) {
+  let stop = null;
+  if (which !== 'overview') {
+    stop = params.has('seam')
+      ? view.goToSeam(Number(params.get('texture')) || 0, Number(params.get('seam')), true)
+      : view.goTo(Number(which) || 0, true);
+    if (!stop) throw new Error('no such seam on the model');
+  }
   view.lines.visible = false;
   const shots = {};
   const samples = 64;
@@ -655,19 +706,23 @@ function probe(view, k) {
     renderer.render(scene, camera);
     dirty = false;
     const line = [];
-    for (let i = 0; i <= samples; i++) {
+    for (let i = 0; stop && i <= samples; i++) {
       line.push(project(stop.seam.p0.clone().lerp(stop.seam.p1, i / samples)));
     }
     shots[m] = { png: renderer.domElement.toDataURL('image/png'), line };
   }
-  return { stop: k, edge: stop.edge, shots };
+  return stop ? { stop: view.stops.indexOf(stop), texture: stop.texture, index: stop.index, edge: stop.edge, shots } : { shots };
 }
 
 // What a driving browser reads once the page has rendered (or failed): a
 // JSON string, also written into <pre id="result">.
 window.seamstressResult = main().then((view) => {
-  const out = { ok: !!view, s3tc: gpuS3tc, errors, load_ms: view ? view.loadMs : null };
-  if (view && params.has('probe')) Object.assign(out, probe(view, Number(params.get('probe')) || 0));
+  const ok = !!(view && view.setMode);
+  const out = {
+    ok, s3tc: gpuS3tc, errors, seen: view ? view.seen : [],
+    load_ms: ok ? view.loadMs : null, waited_ms: ok ? view.waitedMs : null,
+  };
+  if (ok && params.has('probe')) Object.assign(out, probe(view, params.get('probe')));
   requestAnimationFrame(frame);
   return out;
 }).catch((e) => {
