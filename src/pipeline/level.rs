@@ -16,7 +16,9 @@ use crate::bc1::{self, Block};
 use crate::model::{find_seams, SeamSet, Texture, TextureBinding, UvTriangle};
 use crate::seam::charts::{harmed, Charts, HARM_PSNR_DB};
 use crate::seam::classify::{classify, ClassifyOptions, SeamVerdicts};
-use crate::seam::erase::{erase, EraseOptions, EraseStats, Mode};
+use crate::seam::erase::{
+    erase, EraseOptions, EraseStats, Mode, BAND_MARGIN, MIP_BAND_MARGIN,
+};
 use crate::seam::masking::{mask, MaskingOptions};
 use crate::seam::metric::seam_points_texel_length;
 use crate::seam::padding::pad_left_seams;
@@ -175,7 +177,8 @@ fn judged_solve(
     charts: &Charts,
     (opts, rung): (&ProcessOptions, Rung),
 ) -> Result<(Solved, Vec<ChartHarm>), PipelineError> {
-    let run = |closed: &[bool]| solve(b, grid, data, channels, seams, closed, charts, opts);
+    let run =
+        |closed: &[bool]| solve(b, grid, data, channels, seams, closed, charts, (opts, rung));
     let psnr = |solved: &Solved| charts.psnr_per_chart(&solved.data, data, channels, compared);
     let mut solved = run(&verdicts.closed)?;
     let mut per_chart = psnr(&solved);
@@ -309,7 +312,7 @@ fn solve(
     seams: &SeamSet,
     closed: &[bool],
     charts: &Charts,
-    opts: &ProcessOptions,
+    (opts, rung): (&ProcessOptions, Rung),
 ) -> Result<Solved, PipelineError> {
     let selected = seams.select(closed);
     let mut input = data.to_vec();
@@ -322,7 +325,13 @@ fn solve(
             channels,
             &selected,
             &classes,
-            &EraseOptions::new(opts.mode),
+            &EraseOptions {
+                band_margin: match rung {
+                    Rung::Base => BAND_MARGIN,
+                    Rung::Mip => MIP_BAND_MARGIN,
+                },
+                ..EraseOptions::new(opts.mode)
+            },
         )
         .map_err(|source| PipelineError::Erase {
             name: b.name.clone(),

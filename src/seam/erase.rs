@@ -20,7 +20,8 @@
 //! The first band holds every texel where an estimate of the change
 //! ([`FarField`]: the responses to half the input's jump at each seam texel,
 //! what each side takes, summed in the plane) reaches a quarter of the
-//! tolerance, a thousandth of an 8-bit level (SPEC §4; see [`EraseOptions`]).
+//! tolerance (a sixteenth on smaller mip levels, [`MIP_BAND_MARGIN`]), a
+//! thousandth of an 8-bit level (SPEC §4; see [`EraseOptions`]).
 //! On Fox that is 1.82 M unknowns, where the largest 1D decay from any one
 //! seam texel took 1.97 M; neither needs a second solve. After the solve,
 //! wherever the changes of a texel's band neighbours imply a miss above the
@@ -82,6 +83,9 @@ pub struct EraseOptions {
     /// Fox from 1.97 M unknowns to 1.56 M and move one stored value in 12.6
     /// million by a level, but the SPEC does not allow it.)
     pub band_tolerance_levels: f64,
+    /// How far below the tolerance the first band's estimate reaches
+    /// ([`BAND_MARGIN`] or [`MIP_BAND_MARGIN`]).
+    pub band_margin: f64,
     /// Solve for every inside or free texel instead of a band (for tests and comparisons).
     pub full: bool,
     pub solver: Solver,
@@ -102,6 +106,7 @@ impl EraseOptions {
         EraseOptions {
             weights: EraseWeights::for_mode(mode),
             band_tolerance_levels: 1e-3,
+            band_margin: BAND_MARGIN,
             full: false,
             solver: Solver::Auto,
         }
@@ -236,7 +241,7 @@ pub fn erase(
     // The first band is found on one thread, the seam blocks summed on the
     // other: neither needs the other.
     let (mut band, seam) = rayon::join(
-        || first_band(grid, &jumps, &dist, &movable, ratio, tol),
+        || first_band(grid, &jumps, &dist, &movable, ratio, tol / opts.band_margin),
         seam_blocks,
     );
     // The points live on in the blocks. Freed now, their pages (over 20 MB on
@@ -282,18 +287,17 @@ pub fn erase(
 }
 
 /// The first band: every movable texel where the far-field estimate
-/// ([`FarField`]) reaches the tolerance over [`BAND_MARGIN`], and every one
-/// within [`MIN_BAND`] decay lengths of a seam (near the seams the C1 term
-/// and the bilinear taps shape the change in ways the estimate ignores).
+/// ([`FarField`]) reaches `level`, and every one within [`MIN_BAND`] decay
+/// lengths of a seam (near the seams the C1 term and the bilinear taps
+/// shape the change in ways the estimate ignores).
 fn first_band(
     grid: &TexelGrid,
     jumps: &[(u32, f64)],
     dist: &[u32],
     movable: &[bool],
     ratio: f64,
-    tol: f64,
+    level: f64,
 ) -> Vec<bool> {
-    let level = tol / BAND_MARGIN;
     let field = FarField::new(grid.width, grid.height, jumps, ratio, level);
     let base = (-MIN_BAND / ratio.ln()).ceil() as u32;
     let w = grid.width;
@@ -318,7 +322,17 @@ fn first_band(
 /// 28.7 M unknowns). blub and cube_gradient_1024 have none from 1.5 on;
 /// cube_gradient_128, whose change dies out within a dozen texels, has some
 /// at every margin tried (six at 3).
-const BAND_MARGIN: f64 = 4.0;
+pub const BAND_MARGIN: f64 = 4.0;
+
+/// [`BAND_MARGIN`] for a smaller mip level, filtered from an erased one:
+/// its sides already agree in value, so what still moves it is mostly the
+/// C1 term, which the estimate (made from the jumps) does not see, and its
+/// change decays within a few texels, where the coarse estimate is rough.
+/// At 4 every level of Fox below the first leaks (level 1 at 386 k unknowns,
+/// then a second solve at 415 k, nearly as long as the first), as do the
+/// controller's; at 16 none of Fox's levels 1–4 and none of the
+/// controller's levels 1–2 does (Fox level 1: 437 k unknowns, one solve).
+pub const MIP_BAND_MARGIN: f64 = 16.0;
 
 /// The narrowest band, in decay lengths.
 const MIN_BAND: f64 = 2.0;
