@@ -16,9 +16,7 @@ use crate::bc1::{self, Block};
 use crate::model::{find_seams, SeamSet, Texture, TextureBinding, UvTriangle};
 use crate::seam::charts::{harmed, Charts, HARM_PSNR_DB};
 use crate::seam::classify::{classify, ClassifyOptions, SeamVerdicts};
-use crate::seam::erase::{
-    erase, EraseOptions, EraseStats, Mode, BAND_MARGIN, MIP_BAND_MARGIN,
-};
+use crate::seam::erase::{erase, EraseOptions, EraseStats, Mode, BAND_MARGIN, MIP_BAND_MARGIN};
 use crate::seam::masking::{mask, MaskingOptions};
 use crate::seam::metric::seam_points_texel_length;
 use crate::seam::padding::pad_left_seams;
@@ -177,8 +175,7 @@ fn judged_solve(
     charts: &Charts,
     (opts, rung): (&ProcessOptions, Rung),
 ) -> Result<(Solved, Vec<ChartHarm>), PipelineError> {
-    let run =
-        |closed: &[bool]| solve(b, grid, data, channels, seams, closed, charts, (opts, rung));
+    let run = |closed: &[bool]| solve(b, grid, data, channels, seams, closed, charts, (opts, rung));
     let psnr = |solved: &Solved| charts.psnr_per_chart(&solved.data, data, channels, compared);
     let mut solved = run(&verdicts.closed)?;
     let mut per_chart = psnr(&solved);
