@@ -213,10 +213,16 @@ pub fn copy_tree(from: &Path, to: &Path) {
 /// Every shared model but the negative ones, and one of those: a GLB whose
 /// mesh needs Draco.
 pub fn farm_folder(dir: &Path) -> (PathBuf, usize) {
+    farm_folder_without(dir, &[])
+}
+
+/// [`farm_folder`] without the shared folders named in `skip`.
+pub fn farm_folder_without(dir: &Path, skip: &[&str]) -> (PathBuf, usize) {
     let input = dir.join("in");
     for e in std::fs::read_dir(shared_assets()).unwrap() {
         let p = e.unwrap().path();
-        if p.is_dir() && p.file_name().unwrap() != "negative" {
+        let name = p.file_name().unwrap();
+        if p.is_dir() && name != "negative" && !skip.iter().any(|s| name == *s) {
             copy_tree(&p, &input.join(p.file_name().unwrap()));
         }
     }
