@@ -13,6 +13,7 @@
 //! ([`gltf_lod`]) and measured with a sampled Hausdorff distance
 //! ([`hausdorff`]) besides the simplifier's own error.
 
+pub mod closed;
 pub mod gltf_lod;
 pub mod hausdorff;
 pub mod ratios;
@@ -59,8 +60,8 @@ pub struct LevelGeometry {
     /// Welded seam vertices, and those the seam test locked.
     pub seam_vertices: usize,
     pub seam_locked: usize,
-    /// Primitives whose seams had to be frozen whole.
-    pub frozen: usize,
+    /// Primitives stopped short because a stage's seams would not settle.
+    pub unsettled: usize,
 }
 
 /// Per-level figures in the report.
@@ -77,6 +78,11 @@ pub struct LodLevel {
     pub seam_rms_erased: Option<f64>,
     /// The seam-aware DDS's (BC1), the same way.
     pub seam_rms_dds: Option<f64>,
+    /// The same two over the level's seam edges that run along closed
+    /// seams only: the seams left as painted disagree by tens of levels
+    /// and would drown what a level does to the closed ones.
+    pub seam_rms_closed_erased: Option<f64>,
+    pub seam_rms_closed_dds: Option<f64>,
     /// The simplifier's own error relative to the model's extent.
     pub simplifier_error: f64,
     /// Symmetric Hausdorff distance to the full mesh, sampled on both
@@ -97,6 +103,8 @@ pub struct LodTexture {
     pub seam_edges: usize,
     pub seam_rms_erased: Option<f64>,
     pub seam_rms_dds: Option<f64>,
+    pub seam_rms_closed_erased: Option<f64>,
+    pub seam_rms_closed_dds: Option<f64>,
 }
 
 struct PrimitiveLevels {
@@ -155,10 +163,9 @@ pub fn simplify_model(
         .map(|&(mesh, primitive, data)| {
             let m = data.mesh();
             let topo = Topology::new(&m);
-            let levels = ratios
-                .iter()
-                .map(|&r| {
-                    let s = simplify::simplify(&m, &topo, r, constraints);
+            let levels = simplify::simplify_levels(&m, &topo, ratios, constraints)
+                .into_iter()
+                .map(|s| {
                     let h = hausdorff::symmetric(&data.positions, &data.indices, &s.indices);
                     (s, h)
                 })
@@ -181,7 +188,7 @@ pub fn simplify_model(
             hausdorff: 0.0,
             seam_vertices: 0,
             seam_locked: 0,
-            frozen: 0,
+            unsettled: 0,
         };
         for (mi, m) in meshes.iter().enumerate() {
             if m.kept_whole.is_none() {
@@ -195,7 +202,7 @@ pub fn simplify_model(
             level.hausdorff = level.hausdorff.max(h / extent);
             level.seam_vertices += s.locks.seam;
             level.seam_locked += s.locks.seam_locked;
-            level.frozen += usize::from(s.seams_frozen);
+            level.unsettled += usize::from(s.unsettled);
             if let Some(prims) = level.indices.get_mut(&p.mesh) {
                 prims[p.primitive] = Some(s.indices.clone());
             }

@@ -6,12 +6,13 @@
 use std::borrow::Cow;
 
 use crate::bc1::{dds::read_dds, decode_image};
+use crate::lod::closed::ClosedSeams;
 use crate::lod::{
     self, gltf_lod, LevelIndices, LodError, LodLevel, LodTexture, DEFAULT_TEXTURE_SIZE,
     SEAM_TOLERANCE_TEXELS,
 };
 use crate::model::load::ResolveError;
-use crate::model::{find_seams, plan_from_memory, LoadOptions, Resolver, Texture};
+use crate::model::{find_seams, plan_from_memory, LoadOptions, Resolver, SeamSet, Texture};
 use crate::seam::grid::TexelGrid;
 use crate::seam::metric::colour_channels;
 use crate::seam::SeamMetric;
@@ -45,12 +46,14 @@ pub(super) struct Lods {
 }
 
 /// One processed texture's level-0 images, decoded once for every level.
-struct Measured {
+struct Measured<'a> {
     image: usize,
     width: usize,
     height: usize,
     erased: Texture,
     dds: Option<Vec<f32>>,
+    /// The closed seams of the full mesh, each as its half-edges' UVs.
+    closed: &'a [[[[f64; 2]; 2]; 2]],
 }
 
 /// The levels of `model` (the rewritten model, named `model_name`);
@@ -158,8 +161,8 @@ pub fn make_levels(
     let geometry = lod::simplify_model(&meshes, ratios, tolerance);
     let full = lod::full_triangles(&meshes);
     for (k, g) in geometry.iter().enumerate() {
-        // Short of the ratio by half again: the seams (or the error
-        // limit) stopped the simplifier, which the caller should know.
+        // Short of the ratio by half again: the seams stopped the
+        // simplifier, which the caller should know.
         let wanted = full as f64 * ratios[k];
         if constrained == Constrained::Seams && g.triangles as f64 > 1.5 * wanted.max(1.0) {
             warnings.push(format!(
@@ -170,19 +173,25 @@ pub fn make_levels(
                 ratios[k]
             ));
         }
-        if g.frozen > 0 {
+        if g.unsettled > 0 {
             warnings.push(format!(
-                "lod {}: {} primitive(s) kept every seam vertex in place",
+                "lod {}: {} primitive(s) stopped early: their seams would not settle",
                 k + 1,
-                g.frozen
+                g.unsettled
             ));
         }
     }
 
     let measured = measured_textures(report, files);
+    let chains: Vec<Option<ClosedSeams>> =
+        texture_seams(model_name, model, &resolver, report, &measured)?
+            .into_iter()
+            .zip(&measured)
+            .map(|(found, m)| found.map(|(seams, _)| ClosedSeams::new(&seams, m.closed)))
+            .collect();
     let stem = stem(model_name);
     let measure = |bytes: &[u8]| -> Result<Vec<LodTexture>, LodError> {
-        level_seams(model_name, bytes, &resolver, report, &measured)
+        level_seams(model_name, bytes, &resolver, report, &measured, &chains)
     };
     let mut levels = Vec::with_capacity(ratios.len() + 1);
     levels.push(level_row(
@@ -256,6 +265,8 @@ fn level_row(
         seam_edges: textures.iter().map(|t| t.seam_edges).sum(),
         seam_rms_erased: worst(|t| t.seam_rms_erased),
         seam_rms_dds: worst(|t| t.seam_rms_dds),
+        seam_rms_closed_erased: worst(|t| t.seam_rms_closed_erased),
+        seam_rms_closed_dds: worst(|t| t.seam_rms_closed_dds),
         simplifier_error: error,
         hausdorff,
         seam_vertices,
@@ -266,7 +277,7 @@ fn level_row(
 }
 
 /// Each processed texture's erased image and its DDS (BC1) decoded.
-fn measured_textures(report: &Report, files: &[OutputFile]) -> Vec<Measured> {
+fn measured_textures<'a>(report: &'a Report, files: &[OutputFile]) -> Vec<Measured<'a>> {
     let bytes_of = |name: &str| files.iter().find(|f| f.name == name).map(|f| &f.bytes[..]);
     let mut out = Vec::new();
     for t in &report.textures {
@@ -290,48 +301,81 @@ fn measured_textures(report: &Report, files: &[OutputFile]) -> Vec<Measured> {
             height: t.height,
             erased,
             dds,
+            closed: &t.closed_seams,
         });
     }
     out
 }
 
-/// The seam figures of every processed texture on the mesh of `bytes`.
-fn level_seams(
+/// Each measured texture's seams on the mesh of `bytes` (`None` where the
+/// model no longer samples it), with its wrap modes.
+fn texture_seams(
     name: &str,
     bytes: &[u8],
     files: &dyn Resolver,
     report: &Report,
     measured: &[Measured],
-) -> Result<Vec<LodTexture>, LodError> {
+) -> Result<Vec<Option<(SeamSet, TexelGrid)>>, LodError> {
     let opts = LoadOptions {
         extra_maps: report.options.extra_maps,
         ..LoadOptions::default()
     };
     let plan =
         plan_from_memory(name, bytes, files, &opts).map_err(|e| LodError::Model(e.to_string()))?;
+    Ok(measured
+        .iter()
+        .map(|m| {
+            let pt = plan.textures.iter().find(|p| p.image == m.image)?;
+            let grid = TexelGrid {
+                width: m.width,
+                height: m.height,
+                wrap_s: pt.wrap_s,
+                wrap_t: pt.wrap_t,
+            };
+            Some((find_seams(&pt.triangles, m.width, m.height), grid))
+        })
+        .collect())
+}
+
+/// The seam figures of every processed texture on the mesh of `bytes`;
+/// `chains` holds each texture's full-mesh seams with their verdicts.
+fn level_seams(
+    name: &str,
+    bytes: &[u8],
+    files: &dyn Resolver,
+    report: &Report,
+    measured: &[Measured],
+    chains: &[Option<ClosedSeams>],
+) -> Result<Vec<LodTexture>, LodError> {
+    let found = texture_seams(name, bytes, files, report, measured)?;
     let mut out = Vec::new();
-    for m in measured {
-        let Some(pt) = plan.textures.iter().find(|p| p.image == m.image) else {
+    for ((m, found), chains) in measured.iter().zip(found).zip(chains) {
+        let Some((seams, grid)) = found else {
             continue;
         };
-        let seams = find_seams(&pt.triangles, m.width, m.height);
-        let grid = TexelGrid {
-            width: m.width,
-            height: m.height,
-            wrap_s: pt.wrap_s,
-            wrap_t: pt.wrap_t,
+        let closed = match chains {
+            Some(c) => seams.select(&c.classify(&seams)),
+            None => seams.clone(),
         };
-        let metric = SeamMetric::new(&grid, &seams);
         let channels = m.erased.channels;
         let compared = colour_channels(channels);
+        let rms = |metric: &SeamMetric| {
+            (
+                metric.seam_rms(&m.erased.data, channels, compared),
+                m.dds
+                    .as_ref()
+                    .and_then(|d| metric.seam_rms(d, 3, compared.min(3))),
+            )
+        };
+        let (seam_rms_erased, seam_rms_dds) = rms(&SeamMetric::new(&grid, &seams));
+        let (seam_rms_closed_erased, seam_rms_closed_dds) = rms(&SeamMetric::new(&grid, &closed));
         out.push(LodTexture {
             image: m.image,
             seam_edges: seams.seams.len(),
-            seam_rms_erased: metric.seam_rms(&m.erased.data, channels, compared),
-            seam_rms_dds: m
-                .dds
-                .as_ref()
-                .and_then(|d| metric.seam_rms(d, 3, compared.min(3))),
+            seam_rms_erased,
+            seam_rms_dds,
+            seam_rms_closed_erased,
+            seam_rms_closed_dds,
         });
     }
     Ok(out)
