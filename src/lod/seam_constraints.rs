@@ -77,6 +77,96 @@ pub struct StageFlags {
     /// Must not move.
     pub lock: Vec<bool>,
     pub counts: LockCounts,
+    /// The seam vertices freed, with what their chords would take of the
+    /// budget (when the texture is judged).
+    pub planned: Vec<(u32, Vec<f64>)>,
+}
+
+/// A measure of seams on the texture itself (see [`super::seam_texture`]),
+/// in slots (per image the primitive samples, its closed seams and all
+/// of its seams), each a length-weighted mean square of the difference
+/// between the sides that a level must keep within an allowance.
+pub trait ChordJudge: Sync {
+    /// Per slot, a stretch of seam measured as one edge from its first
+    /// vertex to its last (`sides`: each side's vertices along the
+    /// original seam, ends included, in the same order): its length times
+    /// its mean squared difference, and its length. `None` where no chord
+    /// may replace the stretch (it runs over both closed and left seams).
+    fn terms(&self, mesh: &Mesh<'_>, sides: [&[u32]; 2]) -> Option<Vec<[f64; 2]>>;
+
+    /// Per slot, how much a level's mean square may exceed the full
+    /// mesh's.
+    fn allowances(&self) -> Vec<f64>;
+}
+
+/// What the chords a primitive's levels have made so far spent of the
+/// allowance, per slot of its [`ChordJudge`]. A chord changes a slot's
+/// length-weighted mean square num/den; keeping num − target·den ≤ 0, with
+/// target the full mesh's mean square plus the allowance, keeps the level
+/// within it, and each chord's share of that is additive.
+pub struct Budget {
+    target: Vec<f64>,
+    /// What is left: allowance × the full mesh's seam length, less what
+    /// the chords made so far took.
+    room: Vec<f64>,
+    /// The room at the start, to weigh the slots against each other.
+    start: Vec<f64>,
+}
+
+impl Budget {
+    fn fits(&self, taken: &[f64]) -> bool {
+        taken.iter().zip(&self.room).all(|(t, r)| *t <= *r)
+    }
+
+    /// What a chord would take, as a share of the start room (the largest
+    /// over slots), to try the cheapest first.
+    fn share(&self, delta: &[f64]) -> f64 {
+        delta
+            .iter()
+            .zip(&self.start)
+            .map(|(d, s)| {
+                if *s > 0.0 {
+                    d / s
+                } else if *d > 0.0 {
+                    f64::INFINITY
+                } else {
+                    0.0
+                }
+            })
+            .fold(f64::NEG_INFINITY, f64::max)
+    }
+
+    /// Takes what the planned chords whose middle vertex is gone took.
+    pub fn spend(&mut self, planned: &[(u32, Vec<f64>)], present: &[bool]) {
+        for (w, delta) in planned {
+            if !present[*w as usize] {
+                for (r, d) in self.room.iter_mut().zip(delta) {
+                    *r -= d;
+                }
+            }
+        }
+    }
+}
+
+/// What a chord must satisfy to replace a stretch of seam.
+#[derive(Clone, Copy)]
+pub struct ChordRule<'a> {
+    /// The largest deviation from the seam (in UV; see
+    /// [`Topology::chord_deviation`]) allowed where no texture is judged.
+    pub tolerance: f64,
+    /// Where the texture is judged: the judge, and the largest deviation
+    /// it is asked about.
+    pub judge: Option<(&'a dyn ChordJudge, f64)>,
+}
+
+impl ChordRule<'_> {
+    /// The geometric test alone, with `tolerance` in UV.
+    pub fn geometric(tolerance: f64) -> ChordRule<'static> {
+        ChordRule {
+            tolerance,
+            judge: None,
+        }
+    }
 }
 
 fn edge_key(a: u32, b: u32) -> (u32, u32) {
@@ -278,7 +368,7 @@ impl Topology {
     }
 
     /// Which welded vertices the triangles of `indices` use.
-    fn present(&self, indices: &[u32]) -> Vec<bool> {
+    pub fn present(&self, indices: &[u32]) -> Vec<bool> {
         let mut present = vec![false; self.seam_neighbours.len()];
         for &i in indices {
             present[self.weld[i as usize] as usize] = true;
@@ -309,19 +399,95 @@ impl Topology {
         Some(worst)
     }
 
+    /// Whether the chord from place `i` to place `j` of `chain` passes
+    /// `rule`, and how far it strays from the seam (in UV).
+    fn chord_passes(
+        &self,
+        mesh: &Mesh<'_>,
+        chain: &Chain,
+        i: usize,
+        j: usize,
+        rule: &ChordRule<'_>,
+    ) -> Option<f64> {
+        let deviation = self.chord_deviation(mesh, chain, i, j)?;
+        let passes = match rule.judge {
+            None => deviation <= rule.tolerance,
+            Some((_, most)) => deviation <= most,
+        };
+        passes.then_some(deviation)
+    }
+
+    /// The judge's terms of the stretch from place `i` to place `j`.
+    fn terms(
+        &self,
+        mesh: &Mesh<'_>,
+        judge: &dyn ChordJudge,
+        chain: &Chain,
+        i: usize,
+        j: usize,
+    ) -> Option<Vec<[f64; 2]>> {
+        judge.terms(mesh, [&chain.sides[0][i..=j], &chain.sides[1][i..=j]])
+    }
+
+    /// The budget of a primitive's levels: the judge's allowance over the
+    /// full mesh's seams. `None` without a judge.
+    pub fn budget(&self, mesh: &Mesh<'_>, rule: &ChordRule<'_>) -> Option<Budget> {
+        let (judge, _) = rule.judge?;
+        let allowances = judge.allowances();
+        let mut num = vec![0.0; allowances.len()];
+        let mut den = vec![0.0; allowances.len()];
+        let mut keys: Vec<&(u32, u32)> = self.edges.keys().collect();
+        keys.sort_unstable();
+        for &(lo, hi) in keys {
+            let Some(sides) = self.sides_of(lo, hi) else {
+                continue;
+            };
+            if sides[0] == sides[1] {
+                continue;
+            }
+            let (a, b) = ([sides[0].0, sides[0].1], [sides[1].0, sides[1].1]);
+            if let Some(terms) = judge.terms(mesh, [&a, &b]) {
+                for (s, [n, d]) in terms.into_iter().enumerate() {
+                    num[s] += n;
+                    den[s] += d;
+                }
+            }
+        }
+        let target: Vec<f64> = (0..allowances.len())
+            .map(|s| num[s] / den[s].max(f64::MIN_POSITIVE) + allowances[s])
+            .collect();
+        let room: Vec<f64> = (0..allowances.len())
+            .map(|s| allowances[s] * den[s])
+            .collect();
+        Some(Budget {
+            target,
+            start: room.clone(),
+            room,
+        })
+    }
+
     /// The flags of one stage of simplification from the mesh `current`
     /// (indices into the same vertices): a seam vertex is free where
-    /// removing it, merging its two current seam edges, keeps the chord
-    /// within `tolerance` of the original seam; of two free neighbours
+    /// removing it, merging its two current seam edges, makes a chord that
+    /// passes `rule` against the original seam; of two free neighbours
     /// along a seam only one (the one whose chord strays less) is freed
     /// per stage, so that every chord a stage can make is one tested here.
-    pub fn stage_flags(&self, mesh: &Mesh<'_>, current: &[u32], tolerance: f64) -> StageFlags {
+    /// With a budget, chords are freed cheapest first while it lasts.
+    pub fn stage_flags(
+        &self,
+        mesh: &Mesh<'_>,
+        current: &[u32],
+        rule: &ChordRule<'_>,
+        budget: Option<&Budget>,
+    ) -> StageFlags {
         let present = self.present(current);
         let n = present.len();
         let mut free = vec![false; n];
         let mut counts = LockCounts::default();
-        let mut candidates: Vec<(f64, u32, usize, usize)> = Vec::new();
+        // (cost, chain, place among the present ones, what it takes)
+        let mut candidates: Vec<(f64, u32, usize, Vec<f64>)> = Vec::new();
         let mut passing = vec![false; n];
+        let judged = rule.judge.zip(budget);
         // Per chain, the places still present.
         let mut kept: Vec<Vec<usize>> = Vec::with_capacity(self.chains.len());
         for (c, chain) in self.chains.iter().enumerate() {
@@ -330,23 +496,57 @@ impl Topology {
                 .collect();
             for p in 1..places.len().saturating_sub(1) {
                 let (i, k, j) = (places[p - 1], places[p], places[p + 1]);
-                if let Some(d) = self.chord_deviation(mesh, chain, i, j) {
-                    if d <= tolerance {
-                        candidates.push((d, c as u32, p, k));
-                        passing[chain.vertices[k] as usize] = true;
+                let Some(d) = self.chord_passes(mesh, chain, i, j, rule) else {
+                    continue;
+                };
+                let (cost, delta) = match judged {
+                    None => (d, Vec::new()),
+                    Some(((judge, _), budget)) => {
+                        let (Some(whole), Some(before), Some(after)) = (
+                            self.terms(mesh, judge, chain, i, j),
+                            self.terms(mesh, judge, chain, i, k),
+                            self.terms(mesh, judge, chain, k, j),
+                        ) else {
+                            continue;
+                        };
+                        let delta: Vec<f64> = (0..whole.len())
+                            .map(|s| {
+                                let num = whole[s][0] - before[s][0] - after[s][0];
+                                let den = whole[s][1] - before[s][1] - after[s][1];
+                                num - budget.target[s] * den
+                            })
+                            .collect();
+                        if !budget.fits(&delta) {
+                            continue;
+                        }
+                        (budget.share(&delta), delta)
                     }
-                }
+                };
+                passing[chain.vertices[k] as usize] = true;
+                candidates.push((cost, c as u32, p, delta));
             }
             kept.push(places);
         }
         candidates.sort_by(|a, b| a.0.total_cmp(&b.0).then((a.1, a.2).cmp(&(b.1, b.2))));
-        for &(_, c, p, _) in &candidates {
+        let mut taken = budget.map_or(Vec::new(), |b| vec![0.0; b.room.len()]);
+        let mut planned = Vec::new();
+        for (_, c, p, delta) in candidates {
             let chain = &self.chains[c as usize];
             let places = &kept[c as usize];
             let neighbour_free = |q: usize| free[chain.vertices[places[q]] as usize];
-            if !neighbour_free(p - 1) && !neighbour_free(p + 1) {
-                free[chain.vertices[places[p]] as usize] = true;
+            if neighbour_free(p - 1) || neighbour_free(p + 1) {
+                continue;
             }
+            if let Some(b) = budget.filter(|_| !delta.is_empty()) {
+                let sum: Vec<f64> = taken.iter().zip(&delta).map(|(t, d)| t + d).collect();
+                if !b.fits(&sum) {
+                    continue;
+                }
+                taken = sum;
+            }
+            let w = chain.vertices[places[p]];
+            free[w as usize] = true;
+            planned.push((w, delta));
         }
         let mut lock = vec![false; n];
         for w in 0..n {
@@ -367,15 +567,23 @@ impl Topology {
         StageFlags {
             lock: self.per_vertex(&lock),
             counts,
+            planned,
         }
     }
 
-    /// The welded vertices whose removal a simplified mesh (`lod` indices
-    /// into the same vertices) got wrong: removed seam vertices under a
+    /// The welded vertices whose removal a simplified mesh (`lod`, made
+    /// from `current`, both indices into the same vertices) got wrong:
+    /// removed seam vertices under a
     /// surviving seam edge that does not run along one chain on both sides
-    /// within `tolerance` of it. Empty when every surviving seam edge maps
+    /// as a chord passing `rule`. Empty when every surviving seam edge maps
     /// the removed seam the way the erased texture was made for.
-    pub fn violations(&self, mesh: &Mesh<'_>, lod: &[u32], tolerance: f64) -> Vec<u32> {
+    pub fn violations(
+        &self,
+        mesh: &Mesh<'_>,
+        current: &[u32],
+        lod: &[u32],
+        rule: &ChordRule<'_>,
+    ) -> Vec<u32> {
         let present = self.present(lod);
         let mut lod_edges: BTreeMap<(u32, u32), Vec<(u32, u32)>> = BTreeMap::new();
         for t in lod.chunks_exact(3) {
@@ -408,18 +616,30 @@ impl Topology {
                     continue;
                 }
             }
-            match self.explain(mesh, u, w, [*h1, *h2], &present, tolerance) {
+            match self.explain(mesh, u, w, [*h1, *h2], &present, rule) {
                 Ok(()) => {}
                 Err(removed) if !removed.is_empty() => bad.extend(removed),
                 Err(_) => {
                     // A seam edge that no chain explains: hold the removed
-                    // seam vertices around it.
+                    // seam vertices around it, or where none was removed
+                    // (the triangles of a chart between two seams collapsed,
+                    // and the charts on either side met), every vertex
+                    // removed around it.
+                    let before = bad.len();
                     for end in [u, w] {
                         bad.extend(
                             self.seam_neighbours[end as usize]
                                 .iter()
                                 .filter(|&&x| !present[x as usize]),
                         );
+                    }
+                    if bad.len() == before {
+                        for t in current.chunks_exact(3) {
+                            let ws = [t[0], t[1], t[2]].map(|i| self.weld[i as usize]);
+                            if ws.contains(&u) || ws.contains(&w) {
+                                bad.extend(ws.iter().filter(|&&x| !present[x as usize]));
+                            }
+                        }
                     }
                 }
             }
@@ -430,8 +650,8 @@ impl Topology {
     }
 
     /// Whether the new seam edge (`u`, `w`) (`u` < `w`), given by its two
-    /// half-edges, replaces a stretch of one chain within `tolerance` on
-    /// both sides; else the removed vertices of that stretch (empty when
+    /// half-edges, replaces a stretch of one chain as a chord passing
+    /// `rule`; else the removed vertices of that stretch (empty when
     /// no chain holds it).
     fn explain(
         &self,
@@ -440,7 +660,7 @@ impl Topology {
         w: u32,
         halves: [(u32, u32); 2],
         present: &[bool],
-        tolerance: f64,
+        rule: &ChordRule<'_>,
     ) -> Result<(), Vec<u32>> {
         let chains_of = |v: u32| -> Vec<u32> {
             match self.place[v as usize] {
@@ -470,10 +690,8 @@ impl Topology {
                     let mut got = halves;
                     want.sort_unstable();
                     got.sort_unstable();
-                    let consistent = want == got
-                        && self
-                            .chord_deviation(mesh, chain, lo, hi)
-                            .is_some_and(|d| d <= tolerance);
+                    let consistent =
+                        want == got && self.chord_passes(mesh, chain, lo, hi, rule).is_some();
                     return if consistent { Ok(()) } else { Err(removed) };
                 }
             }
@@ -560,7 +778,7 @@ mod tests {
         };
         let topo = Topology::new(&mesh);
         assert_eq!(topo.chain_vertex_count(), 1);
-        let flags = topo.stage_flags(&mesh, &indices, 1e-4);
+        let flags = topo.stage_flags(&mesh, &indices, &ChordRule::geometric(1e-4), None);
         assert_eq!(flags.counts.seam, 1);
         flags.lock[4]
     }

@@ -6,13 +6,20 @@
 use std::borrow::Cow;
 
 use crate::bc1::{dds::read_dds, decode_image};
+use std::collections::HashMap;
+
 use crate::lod::closed::ClosedSeams;
+use crate::lod::seam_texture::{Allowance, JudgedImage, SampledTexture, TextureJudge};
 use crate::lod::{
-    self, gltf_lod, LevelIndices, LodError, LodLevel, LodTexture, DEFAULT_TEXTURE_SIZE,
+    self, gltf_lod, LevelIndices, LodError, LodLevel, LodTexture, ModelConstraints,
+    DEFAULT_TEXTURE_SIZE, JUDGED_CHORD_TEXELS, LEVEL_MARGIN_DDS, LEVEL_MARGIN_ERASED,
     SEAM_TOLERANCE_TEXELS,
 };
-use crate::model::load::ResolveError;
-use crate::model::{find_seams, plan_from_memory, LoadOptions, Resolver, SeamSet, Texture};
+use crate::model::load::{ResolveError, Sampling};
+use crate::model::{
+    find_seams, plan_from_memory, LoadOptions, PlannedTexture, Resolver, SeamSet, Texture,
+    UvTriangle,
+};
 use crate::seam::grid::TexelGrid;
 use crate::seam::metric::colour_channels;
 use crate::seam::SeamMetric;
@@ -154,11 +161,31 @@ pub fn make_levels(
     } else {
         DEFAULT_TEXTURE_SIZE
     };
-    let tolerance = match constrained {
-        Constrained::Seams => Some(SEAM_TOLERANCE_TEXELS / size),
-        Constrained::Plain => None,
+    let measured = measured_textures(report, files);
+    let (found, samplings) = texture_seams(model_name, model, &resolver, report, &measured)?;
+    let chains: Vec<Option<ClosedSeams>> = found
+        .iter()
+        .zip(&measured)
+        .map(|(found, m)| {
+            found
+                .as_ref()
+                .map(|(seams, _, triangles)| ClosedSeams::new(seams, triangles, m.closed))
+        })
+        .collect();
+    let measure = |bytes: &[u8]| -> Result<Vec<LodTexture>, LodError> {
+        level_seams(model_name, bytes, &resolver, report, &measured, &chains)
     };
-    let geometry = lod::simplify_model(&meshes, ratios, tolerance);
+    let full_textures = measure(model)?;
+    let judges = texture_judges(&measured, &found, &chains, &full_textures, &samplings);
+    let constraints = match constrained {
+        Constrained::Seams => ModelConstraints::Seams {
+            tolerance: SEAM_TOLERANCE_TEXELS / size,
+            most: JUDGED_CHORD_TEXELS / size,
+            judges: &judges,
+        },
+        Constrained::Plain => ModelConstraints::Plain,
+    };
+    let geometry = lod::simplify_model(&meshes, ratios, &constraints);
     let full = lod::full_triangles(&meshes);
     for (k, g) in geometry.iter().enumerate() {
         // Short of the ratio by half again: the seams stopped the
@@ -182,26 +209,16 @@ pub fn make_levels(
         }
     }
 
-    let measured = measured_textures(report, files);
-    let chains: Vec<Option<ClosedSeams>> =
-        texture_seams(model_name, model, &resolver, report, &measured)?
-            .into_iter()
-            .zip(&measured)
-            .map(|(found, m)| found.map(|(seams, _)| ClosedSeams::new(&seams, m.closed)))
-            .collect();
     let stem = stem(model_name);
-    let measure = |bytes: &[u8]| -> Result<Vec<LodTexture>, LodError> {
-        level_seams(model_name, bytes, &resolver, report, &measured, &chains)
-    };
     let mut levels = Vec::with_capacity(ratios.len() + 1);
     levels.push(level_row(
         0,
         1.0,
         full,
         0.0,
-        0.0,
+        (0.0, 0.0),
         (0, 0),
-        measure(model)?,
+        full_textures,
         None,
     ));
     let mut out_files = Vec::new();
@@ -225,7 +242,7 @@ pub fn make_levels(
             ratios[k],
             g.triangles,
             g.error,
-            g.hausdorff,
+            (g.hausdorff, g.hausdorff_plain),
             (g.seam_vertices, g.seam_locked),
             textures,
             file,
@@ -252,7 +269,7 @@ fn level_row(
     ratio: f64,
     triangles: usize,
     error: f64,
-    hausdorff: f64,
+    (hausdorff, hausdorff_plain): (f64, f64),
     (seam_vertices, seam_vertices_locked): (usize, usize),
     textures: Vec<LodTexture>,
     file: Option<String>,
@@ -269,6 +286,7 @@ fn level_row(
         seam_rms_closed_dds: worst(|t| t.seam_rms_closed_dds),
         simplifier_error: error,
         hausdorff,
+        hausdorff_plain,
         seam_vertices,
         seam_vertices_locked,
         file,
@@ -307,34 +325,106 @@ fn measured_textures<'a>(report: &'a Report, files: &[OutputFile]) -> Vec<Measur
     out
 }
 
+/// One texture's seams on one level's mesh, its grid, and the triangles
+/// the seams were found in.
+type FoundSeams = (SeamSet, TexelGrid, Vec<UvTriangle>);
+
 /// Each measured texture's seams on the mesh of `bytes` (`None` where the
-/// model no longer samples it), with its wrap modes.
+/// model no longer samples it); and which primitive samples which image.
 fn texture_seams(
     name: &str,
     bytes: &[u8],
     files: &dyn Resolver,
     report: &Report,
     measured: &[Measured],
-) -> Result<Vec<Option<(SeamSet, TexelGrid)>>, LodError> {
+) -> Result<(Vec<Option<FoundSeams>>, Vec<Sampling>), LodError> {
     let opts = LoadOptions {
         extra_maps: report.options.extra_maps,
         ..LoadOptions::default()
     };
     let plan =
         plan_from_memory(name, bytes, files, &opts).map_err(|e| LodError::Model(e.to_string()))?;
-    Ok(measured
+    let samplings = plan.samplings;
+    let mut planned: Vec<Option<PlannedTexture>> = plan.textures.into_iter().map(Some).collect();
+    let found = measured
         .iter()
         .map(|m| {
-            let pt = plan.textures.iter().find(|p| p.image == m.image)?;
+            let pt = planned
+                .iter_mut()
+                .find(|p| p.as_ref().is_some_and(|p| p.image == m.image))?
+                .take()?;
             let grid = TexelGrid {
                 width: m.width,
                 height: m.height,
                 wrap_s: pt.wrap_s,
                 wrap_t: pt.wrap_t,
             };
-            Some((find_seams(&pt.triangles, m.width, m.height), grid))
+            let seams = find_seams(&pt.triangles, m.width, m.height);
+            Some((seams, grid, pt.triangles))
         })
-        .collect())
+        .collect();
+    Ok((found, samplings))
+}
+
+/// Per primitive (mesh, primitive), the texture test of its chords: on
+/// every measured texture it samples, the erased image and the DDS, each
+/// allowed the margin a level may add to the full mesh's seam RMS.
+fn texture_judges<'a>(
+    measured: &'a [Measured],
+    found: &[Option<FoundSeams>],
+    chains: &'a [Option<ClosedSeams>],
+    full: &[LodTexture],
+    samplings: &[Sampling],
+) -> HashMap<(usize, usize), TextureJudge<'a>> {
+    let mut judges: HashMap<(usize, usize), TextureJudge<'a>> = HashMap::new();
+    for s in samplings {
+        let Some(k) = measured.iter().position(|m| m.image == s.image) else {
+            continue;
+        };
+        let (m, Some((_, grid, _)), Some(closed)) = (&measured[k], &found[k], &chains[k]) else {
+            continue;
+        };
+        let Some(figures) = full.iter().find(|t| t.image == s.image) else {
+            continue;
+        };
+        let channels = m.erased.channels;
+        let compared = colour_channels(channels);
+        let mut images = vec![JudgedImage {
+            data: &m.erased.data,
+            channels,
+            compared,
+            allowance: Allowance::new(
+                figures.seam_rms_closed_erased,
+                figures.seam_rms_erased,
+                LEVEL_MARGIN_ERASED,
+            ),
+        }];
+        if let Some(dds) = &m.dds {
+            images.push(JudgedImage {
+                data: dds,
+                channels: 3,
+                compared: compared.min(3),
+                allowance: Allowance::new(
+                    figures.seam_rms_closed_dds,
+                    figures.seam_rms_dds,
+                    LEVEL_MARGIN_DDS,
+                ),
+            });
+        }
+        judges
+            .entry((s.mesh, s.primitive))
+            .or_insert_with(|| TextureJudge {
+                textures: Vec::new(),
+            })
+            .textures
+            .push(SampledTexture {
+                grid: *grid,
+                sampling: *s,
+                images,
+                closed,
+            });
+    }
+    judges
 }
 
 /// The seam figures of every processed texture on the mesh of `bytes`;
@@ -347,14 +437,14 @@ fn level_seams(
     measured: &[Measured],
     chains: &[Option<ClosedSeams>],
 ) -> Result<Vec<LodTexture>, LodError> {
-    let found = texture_seams(name, bytes, files, report, measured)?;
+    let (found, _) = texture_seams(name, bytes, files, report, measured)?;
     let mut out = Vec::new();
     for ((m, found), chains) in measured.iter().zip(found).zip(chains) {
-        let Some((seams, grid)) = found else {
+        let Some((seams, grid, triangles)) = found else {
             continue;
         };
         let closed = match chains {
-            Some(c) => seams.select(&c.classify(&seams)),
+            Some(c) => seams.select(&c.classify(&seams, &triangles)),
             None => seams.clone(),
         };
         let channels = m.erased.channels;
