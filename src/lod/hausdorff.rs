@@ -7,12 +7,17 @@
 /// Keeps a 100 000-triangle mesh's figure under a second.
 const MAX_SAMPLED_TRIANGLES: usize = 20_000;
 
+/// Samples per parallel task: each costs a ring search of a few cells.
+const SAMPLES_PER_TASK: usize = 1024;
+
 /// Grid cells per triangle of the searched surface: about one triangle per
 /// cell keeps both the cell lists and the ring search short.
 const CELLS_PER_TRIANGLE: f64 = 1.0;
 
 /// Cells per axis at most (memory bound for long, thin models).
 const MAX_CELLS_PER_AXIS: usize = 128;
+
+use rayon::prelude::*;
 
 type V3 = [f64; 3];
 
@@ -26,21 +31,62 @@ fn add_scaled(a: V3, b: V3, s: f64) -> V3 {
     [a[0] + b[0] * s, a[1] + b[1] * s, a[2] + b[2] * s]
 }
 
+fn triangles(positions: &[[f32; 3]], indices: &[u32]) -> Vec<[V3; 3]> {
+    let p = |i: u32| positions[i as usize].map(f64::from);
+    indices
+        .chunks_exact(3)
+        .map(|t| [p(t[0]), p(t[1]), p(t[2])])
+        .collect()
+}
+
 /// The symmetric Hausdorff distance between triangle lists `a` and `b`
 /// (indices into `positions`), in the positions' units.
 pub fn symmetric(positions: &[[f32; 3]], a: &[u32], b: &[u32]) -> f64 {
-    let p = |i: u32| positions[i as usize].map(f64::from);
-    let tris = |ix: &[u32]| -> Vec<[V3; 3]> {
-        ix.chunks_exact(3)
-            .map(|t| [p(t[0]), p(t[1]), p(t[2])])
-            .collect()
-    };
-    let (ta, tb) = (tris(a), tris(b));
-    one_sided(&ta, &tb).max(one_sided(&tb, &ta))
+    let (ta, tb) = (triangles(positions, a), triangles(positions, b));
+    one_sided(&ta, &tb, MAX_SAMPLED_TRIANGLES).max(one_sided(&tb, &ta, MAX_SAMPLED_TRIANGLES))
 }
 
-fn samples(tris: &[[V3; 3]]) -> Vec<V3> {
-    let step = tris.len().div_ceil(MAX_SAMPLED_TRIANGLES).max(1);
+/// One surface measured against many: its triangles, their search grid
+/// and its samples made once.
+pub struct Reference {
+    tris: Vec<[V3; 3]>,
+    grid: Grid,
+    samples: Vec<V3>,
+    sampled: usize,
+}
+
+impl Reference {
+    /// `indices` into `positions`, sampled on up to `sampled` triangles
+    /// (see [`Reference::symmetric`]).
+    pub fn new(positions: &[[f32; 3]], indices: &[u32], sampled: usize) -> Reference {
+        let tris = triangles(positions, indices);
+        let grid = Grid::new(&tris);
+        let samples = samples(&tris, sampled);
+        Reference {
+            tris,
+            grid,
+            samples,
+            sampled,
+        }
+    }
+
+    /// The symmetric Hausdorff distance to `indices` (into the same
+    /// positions), each side sampled on up to the reference's number of
+    /// triangles: [`symmetric`] where neither side has more.
+    pub fn symmetric(&self, positions: &[[f32; 3]], indices: &[u32]) -> f64 {
+        let other = triangles(positions, indices);
+        if self.tris.is_empty() || other.is_empty() {
+            return 0.0;
+        }
+        let to_other = Grid::new(&other);
+        let away = farthest(&self.samples, &to_other, &other);
+        let back = farthest(&samples(&other, self.sampled), &self.grid, &self.tris);
+        away.max(back)
+    }
+}
+
+fn samples(tris: &[[V3; 3]], most: usize) -> Vec<V3> {
+    let step = tris.len().div_ceil(most.max(1)).max(1);
     let mut out = Vec::new();
     for t in tris.iter().step_by(step) {
         out.extend_from_slice(t);
@@ -55,15 +101,22 @@ fn samples(tris: &[[V3; 3]]) -> Vec<V3> {
 }
 
 /// The largest distance from a sample of `from` to the surface `to`.
-fn one_sided(from: &[[V3; 3]], to: &[[V3; 3]]) -> f64 {
+fn one_sided(from: &[[V3; 3]], to: &[[V3; 3]], sampled: usize) -> f64 {
     if from.is_empty() || to.is_empty() {
         return 0.0;
     }
-    let grid = Grid::new(to);
-    samples(from)
-        .into_iter()
-        .map(|q| grid.distance(to, q))
-        .fold(0.0, f64::max)
+    farthest(&samples(from, sampled), &Grid::new(to), to)
+}
+
+/// The largest distance from one of `samples` to the surface `to` (searched
+/// through `grid`). Samples are measured in parallel; the largest of them
+/// does not depend on the order.
+fn farthest(samples: &[V3], grid: &Grid, to: &[[V3; 3]]) -> f64 {
+    samples
+        .par_iter()
+        .with_min_len(SAMPLES_PER_TASK)
+        .map(|&q| grid.distance(to, q))
+        .reduce(|| 0.0, f64::max)
 }
 
 struct Grid {
@@ -242,5 +295,7 @@ mod tests {
         let tent = [0, 1, 4, 1, 3, 4, 3, 2, 4, 2, 0, 4];
         let d = symmetric(&positions, &flat, &tent);
         assert!((d - 0.25).abs() < 1e-9, "{d}");
+        let reference = Reference::new(&positions, &flat, MAX_SAMPLED_TRIANGLES);
+        assert_eq!(reference.symmetric(&positions, &tent), d);
     }
 }

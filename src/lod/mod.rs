@@ -8,15 +8,21 @@
 //! off the straight line the seam's texels were erased along, reopens the
 //! seam, because the texture was erased for edges that no longer exist.
 //! Collapses along a seam are allowed only where both sides stay
-//! consistent ([`seam_constraints`]); meshoptimizer does the rest
-//! ([`simplify`]). The levels are written into the model with `MSFT_lod`
+//! consistent ([`seam_constraints`]): on the textures the primitive
+//! samples, each chord that would replace a stretch of seam is measured on
+//! the erased texture and the DDS and must keep the level's seam RMS
+//! within a budget ([`seam_texture`]); meshoptimizer does the rest
+//! ([`simplify`]), a stage at a time, each held to 1.5 times plain
+//! meshoptimizer's distance to the full mesh. The levels are written into the model with `MSFT_lod`
 //! ([`gltf_lod`]) and measured with a sampled Hausdorff distance
 //! ([`hausdorff`]) besides the simplifier's own error.
 
+pub mod closed;
 pub mod gltf_lod;
 pub mod hausdorff;
 pub mod ratios;
 pub mod seam_constraints;
+pub mod seam_texture;
 pub mod simplify;
 
 use rayon::prelude::*;
@@ -26,14 +32,35 @@ pub use gltf_lod::{LevelIndices, MeshSource, Primitive};
 pub use ratios::{LodRatios, RatiosError, MAX_LODS};
 pub use simplify::Constraints;
 
-use seam_constraints::Topology;
+use std::collections::HashMap;
 
-/// How far (in texels of the largest texture the model samples) a seam
-/// vertex may sit off the line of the two seam edges it joins, and how far
-/// apart its two sides may put it along that line, and still collapse.
+use seam_constraints::{ChordJudge, ChordRule, Topology};
+use seam_texture::TextureJudge;
+
+/// Where no processed texture judges a seam (the primitive samples none):
+/// how far (in texels of the largest texture the model samples) a seam
+/// vertex may sit off the chord that replaces it, and how far apart its
+/// two sides may put it along that chord, and still collapse.
 /// A twentieth of a texel moves a bilinear sample by at most 5% of one
 /// texel's difference: far below a level of 8-bit colour on erased seams.
 pub const SEAM_TOLERANCE_TEXELS: f64 = 0.05;
+
+/// How far (in texels of the largest texture) a chord may stray from the
+/// seam it replaces where the texture itself judges it. The judge measures
+/// the chord, so a farther one is not wrong; but it spends on one stretch
+/// the allowance the level has for all of them: blub reaches 1% of its
+/// triangles with 2 or 4 texels and stops at 2% with 8 or none; Fox,
+/// CesiumMan, both blub_atlas models and the controller stop within 10%
+/// of the same triangle counts with 2, 4, 8 or none (their floors come
+/// from the geometric bound, `MAX_ERROR_RATIO` in [`simplify`]).
+pub const JUDGED_CHORD_TEXELS: f64 = 4.0;
+
+/// What a level may add to the full mesh's seam RMS (8-bit levels) on
+/// the erased texture and on the DDS: four fifths of the bounds each level
+/// is held to (0.05 and 0.1), the rest left for the level's seams being
+/// weighted by their chords' lengths rather than the seams' they replace.
+pub const LEVEL_MARGIN_ERASED: f64 = 0.04;
+pub const LEVEL_MARGIN_DDS: f64 = 0.08;
 
 /// Texture size assumed where the model samples no processed texture.
 pub const DEFAULT_TEXTURE_SIZE: f64 = 1024.0;
@@ -56,11 +83,14 @@ pub struct LevelGeometry {
     /// Symmetric Hausdorff distance to the full mesh, the largest over
     /// primitives, relative to the model's extent.
     pub hausdorff: f64,
+    /// The same of meshoptimizer alone, each primitive simplified to the
+    /// same triangle count.
+    pub hausdorff_plain: f64,
     /// Welded seam vertices, and those the seam test locked.
     pub seam_vertices: usize,
     pub seam_locked: usize,
-    /// Primitives whose seams had to be frozen whole.
-    pub frozen: usize,
+    /// Primitives stopped short because a stage's seams would not settle.
+    pub unsettled: usize,
 }
 
 /// Per-level figures in the report.
@@ -77,11 +107,20 @@ pub struct LodLevel {
     pub seam_rms_erased: Option<f64>,
     /// The seam-aware DDS's (BC1), the same way.
     pub seam_rms_dds: Option<f64>,
+    /// The same two over the level's seam edges that run along closed
+    /// seams only: the seams left as painted disagree by tens of levels
+    /// and would drown what a level does to the closed ones.
+    pub seam_rms_closed_erased: Option<f64>,
+    pub seam_rms_closed_dds: Option<f64>,
     /// The simplifier's own error relative to the model's extent.
     pub simplifier_error: f64,
     /// Symmetric Hausdorff distance to the full mesh, sampled on both
     /// surfaces, relative to the model's extent.
     pub hausdorff: f64,
+    /// The same for meshoptimizer alone (no seam test), each primitive
+    /// simplified to the same triangle count as here: what the seam test
+    /// costs in shape (at most 1.5 times as far; see `lod` in the README).
+    pub hausdorff_plain: f64,
     pub seam_vertices: usize,
     pub seam_vertices_locked: usize,
     /// `<name>.lodN.glb`, with `lod_files`.
@@ -97,12 +136,14 @@ pub struct LodTexture {
     pub seam_edges: usize,
     pub seam_rms_erased: Option<f64>,
     pub seam_rms_dds: Option<f64>,
+    pub seam_rms_closed_erased: Option<f64>,
+    pub seam_rms_closed_dds: Option<f64>,
 }
 
 struct PrimitiveLevels {
     mesh: usize,
     primitive: usize,
-    levels: Vec<(simplify::Simplified, f64)>,
+    levels: Vec<simplify::Simplified>,
 }
 
 /// The bounding box's longest side over every simplified primitive.
@@ -124,13 +165,26 @@ pub fn model_extent(meshes: &[MeshSource]) -> f64 {
     (0..3).map(|k| hi[k] - lo[k]).fold(0.0, f64::max)
 }
 
-/// Every simplifiable mesh simplified to each ratio. `tolerance` is the
-/// seam test's in UV units (`None`: plain meshoptimizer, for comparison).
+/// How the seams constrain the simplifier over a whole model.
+pub enum ModelConstraints<'a> {
+    /// meshoptimizer alone, for comparison.
+    Plain,
+    /// The seam test: on the texture each primitive samples (`judges`, by
+    /// mesh and primitive, asked about chords up to `most` off the seam),
+    /// else geometric within `tolerance` (both in UV).
+    Seams {
+        tolerance: f64,
+        most: f64,
+        judges: &'a HashMap<(usize, usize), TextureJudge<'a>>,
+    },
+}
+
+/// Every simplifiable mesh simplified to each ratio under `constraints`.
 /// Primitives run in parallel; the result does not depend on how.
 pub fn simplify_model(
     meshes: &[MeshSource],
     ratios: &[f64],
-    tolerance: Option<f64>,
+    constraints: &ModelConstraints<'_>,
 ) -> Vec<LevelGeometry> {
     let work: Vec<(usize, usize, &gltf_lod::PrimitiveData)> = meshes
         .iter()
@@ -146,23 +200,26 @@ pub fn simplify_model(
                 })
         })
         .collect();
-    let constraints = match tolerance {
-        Some(tolerance) => Constraints::Seams { tolerance },
-        None => Constraints::Plain,
+    let of_primitive = |mesh: usize, primitive: usize| match constraints {
+        ModelConstraints::Plain => Constraints::Plain,
+        ModelConstraints::Seams {
+            tolerance,
+            most,
+            judges,
+        } => Constraints::Seams(ChordRule {
+            tolerance: *tolerance,
+            judge: judges
+                .get(&(mesh, primitive))
+                .map(|j| (j as &dyn ChordJudge, *most)),
+        }),
     };
     let done: Vec<PrimitiveLevels> = work
         .par_iter()
         .map(|&(mesh, primitive, data)| {
             let m = data.mesh();
             let topo = Topology::new(&m);
-            let levels = ratios
-                .iter()
-                .map(|&r| {
-                    let s = simplify::simplify(&m, &topo, r, constraints);
-                    let h = hausdorff::symmetric(&data.positions, &data.indices, &s.indices);
-                    (s, h)
-                })
-                .collect();
+            let levels =
+                simplify::simplify_levels(&m, &topo, ratios, of_primitive(mesh, primitive));
             PrimitiveLevels {
                 mesh,
                 primitive,
@@ -179,9 +236,10 @@ pub fn simplify_model(
             triangles: 0,
             error: 0.0,
             hausdorff: 0.0,
+            hausdorff_plain: 0.0,
             seam_vertices: 0,
             seam_locked: 0,
-            frozen: 0,
+            unsettled: 0,
         };
         for (mi, m) in meshes.iter().enumerate() {
             if m.kept_whole.is_none() {
@@ -189,13 +247,14 @@ pub fn simplify_model(
             }
         }
         for p in &done {
-            let (s, h) = &p.levels[k];
+            let s = &p.levels[k];
             level.triangles += s.indices.len() / 3;
             level.error = level.error.max(s.error / extent);
-            level.hausdorff = level.hausdorff.max(h / extent);
+            level.hausdorff = level.hausdorff.max(s.hausdorff / extent);
+            level.hausdorff_plain = level.hausdorff_plain.max(s.hausdorff_plain / extent);
             level.seam_vertices += s.locks.seam;
             level.seam_locked += s.locks.seam_locked;
-            level.frozen += usize::from(s.seams_frozen);
+            level.unsettled += usize::from(s.unsettled);
             if let Some(prims) = level.indices.get_mut(&p.mesh) {
                 prims[p.primitive] = Some(s.indices.clone());
             }

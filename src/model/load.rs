@@ -306,7 +306,29 @@ pub struct Plan {
     file: String,
     pub textures: Vec<PlannedTexture>,
     pub skipped: Vec<Skipped>,
+    /// Which primitive samples which image, and how: what a level of
+    /// detail of that primitive is measured against.
+    pub samplings: Vec<Sampling>,
     max_texture_size: u32,
+}
+
+/// One primitive sampling one image.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Sampling {
+    pub mesh: usize,
+    pub primitive: usize,
+    pub image: usize,
+    /// The TEXCOORD set, and the KHR_texture_transform applied to it (a
+    /// row-major 2×3 affine map), as the image's triangles have them.
+    pub set: u32,
+    pub transform: Option<[f64; 6]>,
+}
+
+impl Sampling {
+    /// A UV of the set, as the image's triangles have it.
+    pub fn uv(&self, uv: [f32; 2]) -> [f64; 2] {
+        apply(self.transform, uv)
+    }
 }
 
 /// One texture of a [`Plan`]: a [`TextureBinding`] whose image is still encoded.
@@ -1350,6 +1372,7 @@ impl<'a> Loader<'a> {
         let mut skipped = Vec::new();
         let mut groups: HashMap<(usize, u32), u32> = HashMap::new();
         let mut total_triangles = 0usize;
+        let mut samplings = Vec::new();
 
         for (m, mesh) in self.root.meshes.iter().enumerate() {
             for (p, prim) in mesh.primitives.iter().enumerate() {
@@ -1460,6 +1483,13 @@ impl<'a> Loader<'a> {
                             e.insert(self.read_vec::<2>(uv_acc, &what, Type::Vec2)?)
                         }
                     };
+                    samplings.push(Sampling {
+                        mesh: m,
+                        primitive: p,
+                        image: u.image,
+                        set: u.set,
+                        transform: u.transform,
+                    });
                     let next_group = groups.len() as u32;
                     let group = *groups.entry((m, u.set)).or_insert(next_group);
                     let b = builders.entry(u.image).or_default();
@@ -1548,6 +1578,7 @@ impl<'a> Loader<'a> {
             file: String::new(),
             textures,
             skipped,
+            samplings,
             max_texture_size: opts.max_texture_size,
         })
     }

@@ -6,12 +6,20 @@
 use std::borrow::Cow;
 
 use crate::bc1::{dds::read_dds, decode_image};
+use std::collections::HashMap;
+
+use crate::lod::closed::ClosedSeams;
+use crate::lod::seam_texture::{Allowance, JudgedImage, SampledTexture, TextureJudge};
 use crate::lod::{
-    self, gltf_lod, LevelIndices, LodError, LodLevel, LodTexture, DEFAULT_TEXTURE_SIZE,
+    self, gltf_lod, LevelIndices, LodError, LodLevel, LodTexture, ModelConstraints,
+    DEFAULT_TEXTURE_SIZE, JUDGED_CHORD_TEXELS, LEVEL_MARGIN_DDS, LEVEL_MARGIN_ERASED,
     SEAM_TOLERANCE_TEXELS,
 };
-use crate::model::load::ResolveError;
-use crate::model::{find_seams, plan_from_memory, LoadOptions, Resolver, Texture};
+use crate::model::load::{ResolveError, Sampling};
+use crate::model::{
+    find_seams, plan_from_memory, LoadOptions, PlannedTexture, Resolver, SeamSet, Texture,
+    UvTriangle,
+};
 use crate::seam::grid::TexelGrid;
 use crate::seam::metric::colour_channels;
 use crate::seam::SeamMetric;
@@ -45,12 +53,14 @@ pub(super) struct Lods {
 }
 
 /// One processed texture's level-0 images, decoded once for every level.
-struct Measured {
+struct Measured<'a> {
     image: usize,
     width: usize,
     height: usize,
     erased: Texture,
     dds: Option<Vec<f32>>,
+    /// The closed seams of the full mesh, each as its half-edges' UVs.
+    closed: &'a [[[[f64; 2]; 2]; 2]],
 }
 
 /// The levels of `model` (the rewritten model, named `model_name`);
@@ -151,15 +161,35 @@ pub fn make_levels(
     } else {
         DEFAULT_TEXTURE_SIZE
     };
-    let tolerance = match constrained {
-        Constrained::Seams => Some(SEAM_TOLERANCE_TEXELS / size),
-        Constrained::Plain => None,
+    let measured = measured_textures(report, files);
+    let (found, samplings) = texture_seams(model_name, model, &resolver, report, &measured)?;
+    let chains: Vec<Option<ClosedSeams>> = found
+        .iter()
+        .zip(&measured)
+        .map(|(found, m)| {
+            found
+                .as_ref()
+                .map(|(seams, _, triangles)| ClosedSeams::new(seams, triangles, m.closed))
+        })
+        .collect();
+    let measure = |bytes: &[u8]| -> Result<Vec<LodTexture>, LodError> {
+        level_seams(model_name, bytes, &resolver, report, &measured, &chains)
     };
-    let geometry = lod::simplify_model(&meshes, ratios, tolerance);
+    let full_textures = measure(model)?;
+    let judges = texture_judges(&measured, &found, &chains, &full_textures, &samplings);
+    let constraints = match constrained {
+        Constrained::Seams => ModelConstraints::Seams {
+            tolerance: SEAM_TOLERANCE_TEXELS / size,
+            most: JUDGED_CHORD_TEXELS / size,
+            judges: &judges,
+        },
+        Constrained::Plain => ModelConstraints::Plain,
+    };
+    let geometry = lod::simplify_model(&meshes, ratios, &constraints);
     let full = lod::full_triangles(&meshes);
     for (k, g) in geometry.iter().enumerate() {
-        // Short of the ratio by half again: the seams (or the error
-        // limit) stopped the simplifier, which the caller should know.
+        // Short of the ratio by half again: the seams stopped the
+        // simplifier, which the caller should know.
         let wanted = full as f64 * ratios[k];
         if constrained == Constrained::Seams && g.triangles as f64 > 1.5 * wanted.max(1.0) {
             warnings.push(format!(
@@ -170,29 +200,25 @@ pub fn make_levels(
                 ratios[k]
             ));
         }
-        if g.frozen > 0 {
+        if g.unsettled > 0 {
             warnings.push(format!(
-                "lod {}: {} primitive(s) kept every seam vertex in place",
+                "lod {}: {} primitive(s) stopped early: their seams would not settle",
                 k + 1,
-                g.frozen
+                g.unsettled
             ));
         }
     }
 
-    let measured = measured_textures(report, files);
     let stem = stem(model_name);
-    let measure = |bytes: &[u8]| -> Result<Vec<LodTexture>, LodError> {
-        level_seams(model_name, bytes, &resolver, report, &measured)
-    };
     let mut levels = Vec::with_capacity(ratios.len() + 1);
     levels.push(level_row(
         0,
         1.0,
         full,
         0.0,
-        0.0,
+        (0.0, 0.0),
         (0, 0),
-        measure(model)?,
+        full_textures,
         None,
     ));
     let mut out_files = Vec::new();
@@ -216,7 +242,7 @@ pub fn make_levels(
             ratios[k],
             g.triangles,
             g.error,
-            g.hausdorff,
+            (g.hausdorff, g.hausdorff_plain),
             (g.seam_vertices, g.seam_locked),
             textures,
             file,
@@ -243,7 +269,7 @@ fn level_row(
     ratio: f64,
     triangles: usize,
     error: f64,
-    hausdorff: f64,
+    (hausdorff, hausdorff_plain): (f64, f64),
     (seam_vertices, seam_vertices_locked): (usize, usize),
     textures: Vec<LodTexture>,
     file: Option<String>,
@@ -256,8 +282,11 @@ fn level_row(
         seam_edges: textures.iter().map(|t| t.seam_edges).sum(),
         seam_rms_erased: worst(|t| t.seam_rms_erased),
         seam_rms_dds: worst(|t| t.seam_rms_dds),
+        seam_rms_closed_erased: worst(|t| t.seam_rms_closed_erased),
+        seam_rms_closed_dds: worst(|t| t.seam_rms_closed_dds),
         simplifier_error: error,
         hausdorff,
+        hausdorff_plain,
         seam_vertices,
         seam_vertices_locked,
         file,
@@ -266,7 +295,7 @@ fn level_row(
 }
 
 /// Each processed texture's erased image and its DDS (BC1) decoded.
-fn measured_textures(report: &Report, files: &[OutputFile]) -> Vec<Measured> {
+fn measured_textures<'a>(report: &'a Report, files: &[OutputFile]) -> Vec<Measured<'a>> {
     let bytes_of = |name: &str| files.iter().find(|f| f.name == name).map(|f| &f.bytes[..]);
     let mut out = Vec::new();
     for t in &report.textures {
@@ -290,48 +319,153 @@ fn measured_textures(report: &Report, files: &[OutputFile]) -> Vec<Measured> {
             height: t.height,
             erased,
             dds,
+            closed: &t.closed_seams,
         });
     }
     out
 }
 
-/// The seam figures of every processed texture on the mesh of `bytes`.
-fn level_seams(
+/// One texture's seams on one level's mesh, its grid, and the triangles
+/// the seams were found in.
+type FoundSeams = (SeamSet, TexelGrid, Vec<UvTriangle>);
+
+/// Each measured texture's seams on the mesh of `bytes` (`None` where the
+/// model no longer samples it); and which primitive samples which image.
+fn texture_seams(
     name: &str,
     bytes: &[u8],
     files: &dyn Resolver,
     report: &Report,
     measured: &[Measured],
-) -> Result<Vec<LodTexture>, LodError> {
+) -> Result<(Vec<Option<FoundSeams>>, Vec<Sampling>), LodError> {
     let opts = LoadOptions {
         extra_maps: report.options.extra_maps,
         ..LoadOptions::default()
     };
     let plan =
         plan_from_memory(name, bytes, files, &opts).map_err(|e| LodError::Model(e.to_string()))?;
-    let mut out = Vec::new();
-    for m in measured {
-        let Some(pt) = plan.textures.iter().find(|p| p.image == m.image) else {
+    let samplings = plan.samplings;
+    let mut planned: Vec<Option<PlannedTexture>> = plan.textures.into_iter().map(Some).collect();
+    let found = measured
+        .iter()
+        .map(|m| {
+            let pt = planned
+                .iter_mut()
+                .find(|p| p.as_ref().is_some_and(|p| p.image == m.image))?
+                .take()?;
+            let grid = TexelGrid {
+                width: m.width,
+                height: m.height,
+                wrap_s: pt.wrap_s,
+                wrap_t: pt.wrap_t,
+            };
+            let seams = find_seams(&pt.triangles, m.width, m.height);
+            Some((seams, grid, pt.triangles))
+        })
+        .collect();
+    Ok((found, samplings))
+}
+
+/// Per primitive (mesh, primitive), the texture test of its chords: on
+/// every measured texture it samples, the erased image and the DDS, each
+/// allowed the margin a level may add to the full mesh's seam RMS.
+fn texture_judges<'a>(
+    measured: &'a [Measured],
+    found: &[Option<FoundSeams>],
+    chains: &'a [Option<ClosedSeams>],
+    full: &[LodTexture],
+    samplings: &[Sampling],
+) -> HashMap<(usize, usize), TextureJudge<'a>> {
+    let mut judges: HashMap<(usize, usize), TextureJudge<'a>> = HashMap::new();
+    for s in samplings {
+        let Some(k) = measured.iter().position(|m| m.image == s.image) else {
             continue;
         };
-        let seams = find_seams(&pt.triangles, m.width, m.height);
-        let grid = TexelGrid {
-            width: m.width,
-            height: m.height,
-            wrap_s: pt.wrap_s,
-            wrap_t: pt.wrap_t,
+        let (m, Some((_, grid, _)), Some(closed)) = (&measured[k], &found[k], &chains[k]) else {
+            continue;
         };
-        let metric = SeamMetric::new(&grid, &seams);
+        let Some(figures) = full.iter().find(|t| t.image == s.image) else {
+            continue;
+        };
         let channels = m.erased.channels;
         let compared = colour_channels(channels);
+        let mut images = vec![JudgedImage {
+            data: &m.erased.data,
+            channels,
+            compared,
+            allowance: Allowance::new(
+                figures.seam_rms_closed_erased,
+                figures.seam_rms_erased,
+                LEVEL_MARGIN_ERASED,
+            ),
+        }];
+        if let Some(dds) = &m.dds {
+            images.push(JudgedImage {
+                data: dds,
+                channels: 3,
+                compared: compared.min(3),
+                allowance: Allowance::new(
+                    figures.seam_rms_closed_dds,
+                    figures.seam_rms_dds,
+                    LEVEL_MARGIN_DDS,
+                ),
+            });
+        }
+        judges
+            .entry((s.mesh, s.primitive))
+            .or_insert_with(|| TextureJudge {
+                textures: Vec::new(),
+            })
+            .textures
+            .push(SampledTexture {
+                grid: *grid,
+                sampling: *s,
+                images,
+                closed,
+            });
+    }
+    judges
+}
+
+/// The seam figures of every processed texture on the mesh of `bytes`;
+/// `chains` holds each texture's full-mesh seams with their verdicts.
+fn level_seams(
+    name: &str,
+    bytes: &[u8],
+    files: &dyn Resolver,
+    report: &Report,
+    measured: &[Measured],
+    chains: &[Option<ClosedSeams>],
+) -> Result<Vec<LodTexture>, LodError> {
+    let (found, _) = texture_seams(name, bytes, files, report, measured)?;
+    let mut out = Vec::new();
+    for ((m, found), chains) in measured.iter().zip(found).zip(chains) {
+        let Some((seams, grid, triangles)) = found else {
+            continue;
+        };
+        let closed = match chains {
+            Some(c) => seams.select(&c.classify(&seams, &triangles)),
+            None => seams.clone(),
+        };
+        let channels = m.erased.channels;
+        let compared = colour_channels(channels);
+        let rms = |metric: &SeamMetric| {
+            (
+                metric.seam_rms(&m.erased.data, channels, compared),
+                m.dds
+                    .as_ref()
+                    .and_then(|d| metric.seam_rms(d, 3, compared.min(3))),
+            )
+        };
+        let (seam_rms_erased, seam_rms_dds) = rms(&SeamMetric::new(&grid, &seams));
+        let (seam_rms_closed_erased, seam_rms_closed_dds) = rms(&SeamMetric::new(&grid, &closed));
         out.push(LodTexture {
             image: m.image,
             seam_edges: seams.seams.len(),
-            seam_rms_erased: metric.seam_rms(&m.erased.data, channels, compared),
-            seam_rms_dds: m
-                .dds
-                .as_ref()
-                .and_then(|d| metric.seam_rms(d, 3, compared.min(3))),
+            seam_rms_erased,
+            seam_rms_dds,
+            seam_rms_closed_erased,
+            seam_rms_closed_dds,
         });
     }
     Ok(out)

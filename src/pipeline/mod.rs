@@ -261,6 +261,10 @@ pub struct TextureReport {
     pub files: Files,
     pub timings_ms: Timings,
     pub solver: EraseStats,
+    /// The closed seam edges, each as its two half-edges' UV endpoints:
+    /// what the levels of detail measure their own seams against.
+    #[serde(skip)]
+    pub closed_seams: Vec<[[[f64; 2]; 2]; 2]>,
 }
 
 #[derive(Clone, Debug, Serialize)]

@@ -240,6 +240,7 @@ pub(super) fn finish_texture(
             ..Timings::default()
         },
         solver: level0.stats,
+        closed_seams: level0.closed.seams.iter().map(|s| [s.a, s.b]).collect(),
     };
 
     let mut decoded = None;
