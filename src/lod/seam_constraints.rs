@@ -151,8 +151,8 @@ impl Budget {
 /// What a chord must satisfy to replace a stretch of seam.
 #[derive(Clone, Copy)]
 pub struct ChordRule<'a> {
-    /// The largest deviation from the seam (in UV; see
-    /// [`Topology::chord_deviation`]) allowed where no texture is judged.
+    /// The largest deviation from the seam (in UV: off the chord, or
+    /// between the sides along it) allowed where no texture is judged.
     pub tolerance: f64,
     /// Where the texture is judged: the judge, and the largest deviation
     /// it is asked about.
