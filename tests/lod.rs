@@ -195,7 +195,11 @@ fn curved_seams_stay_closed_and_the_evaluator_agrees_on_every_level_file() {
     let main = cesium_man_glb(&model);
     let files = DirResolver::new(model.parent().unwrap()).unwrap();
     let ratios = [0.5, 0.25, 0.1];
-    let out = job("CesiumMan.glb", &main, &files, fast(&ratios, true));
+    let options = ProcessOptions {
+        pictures: true,
+        ..fast(&ratios, true)
+    };
+    let out = job("CesiumMan.glb", &main, &files, options);
     let lods = &out.report.lods;
     assert_eq!(lods.len(), ratios.len() + 1, "{lods:?}");
     let full = &lods[0];
@@ -244,6 +248,32 @@ fn curved_seams_stay_closed_and_the_evaluator_agrees_on_every_level_file() {
             level.hausdorff_plain
         );
     }
+    // Each level's seams drawn over the same texture, the whole texture
+    // shown (CesiumMan's is 1024² texels, a panel of as many pixels with a
+    // margin of 8 around), the pictures laid out alike and different where
+    // the seams run otherwise.
+    let picture = |name: &str| {
+        let f = out.files.iter().find(|f| f.name == name).expect(name);
+        image::load_from_memory(&f.bytes).expect("a PNG").to_rgb8()
+    };
+    let texture = &out.report.textures[0];
+    let level_pictures: Vec<_> = lods[1..]
+        .iter()
+        .map(|l| {
+            picture(
+                l.textures[0]
+                    .seams_picture
+                    .as_deref()
+                    .expect("with pictures"),
+            )
+        })
+        .collect();
+    for p in &level_pictures {
+        assert_eq!(p.dimensions(), level_pictures[0].dimensions());
+        assert!(p.width() >= 1024 + 16 && p.height() > 1024 + 16);
+    }
+    assert_ne!(level_pictures[0], level_pictures[2]);
+
     // Plain meshoptimizer at the same triangle counts opens the closed
     // seams by levels, not tenths.
     let rewritten = out
@@ -292,7 +322,6 @@ fn curved_seams_stay_closed_and_the_evaluator_agrees_on_every_level_file() {
             std::fs::copy(&p, &dest).unwrap();
         }
     }
-    let texture = &out.report.textures[0];
     for level in &lods[1..] {
         let file = dir.join(level.file.as_deref().expect("lod_files writes each level"));
         let t = level

@@ -69,6 +69,9 @@ pub const DEFAULT_TEXTURE_SIZE: f64 = 1024.0;
 pub enum LodError {
     #[error("{0}")]
     Model(String),
+    /// A level's seams picture could not be drawn.
+    #[error("lod seams picture: {0}")]
+    Picture(#[from] crate::picture::PictureError),
 }
 
 /// One level's geometry over the whole model.
@@ -138,6 +141,9 @@ pub struct LodTexture {
     pub seam_rms_dds: Option<f64>,
     pub seam_rms_closed_erased: Option<f64>,
     pub seam_rms_closed_dds: Option<f64>,
+    /// `<name>.lodN.seams.png`, with `pictures` (below level 0).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub seams_picture: Option<String>,
 }
 
 struct PrimitiveLevels {

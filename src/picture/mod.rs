@@ -3,7 +3,7 @@
 //!
 //! Layout, top to bottom, on a dark background with a `MARGIN` all round:
 //!
-//! 1. **Overview panel**: the seam-aware texture dimmed to a third, scaled
+//! 1. **Overview panel**: the shipped (last) version dimmed to a third, scaled
 //!    so that its longer side is at most `MAX_PANEL` pixels (and, for small
 //!    textures, enlarged by an integer factor to at least `MIN_PANEL`), with
 //!    every seam half-edge drawn over it. Hue says the class (closed or left
@@ -12,9 +12,11 @@
 //!    (dim) to `FULL_BRIGHT_LEVELS` or more (bright), each named.
 //! 3. **Close-up strip** (only when some edge is closed): a title row naming
 //!    the versions, then one row per worst closed edge (up to `STRIP_ROWS`);
-//!    each row holds, for `input`, `erased`, `bc1` and `seam_aware` in turn,
-//!    a tile around half-edge `a` and a tile around half-edge `b`, at full
-//!    brightness, the first with the edge's jump in that version written on it.
+//!    each row holds, for each version in turn (for a job: input, erased,
+//!    regular BC1, seam-aware BC1; for a level of detail: erased and the
+//!    DDS), a tile around half-edge `a` and a tile around half-edge `b`, at
+//!    full brightness, the first with the edge's jump in that version
+//!    written on it.
 //!
 //! The words are drawn with a bitmap font of its own (`font.rs`): the
 //! picture needs a few dozen glyphs, not a font renderer.
@@ -28,18 +30,15 @@ use crate::seam::TexelGrid;
 mod font;
 use font::{draw_text, text_width, GLYPH_H};
 
-/// What the seams picture shows for one texture (mip level 0).
+/// What the seams picture shows for one texture (mip level 0) on one mesh.
 pub struct SeamPicture<'a> {
     /// Width, height and wrap modes of the texture.
     pub grid: &'a TexelGrid,
-    /// RGB texels, 3 interleaved f32 values per texel in \[0,1\], row-major,
-    /// `grid.width * grid.height` texels each:
-    pub input: &'a [f32],
-    pub erased: &'a [f32],
-    /// The regular BC1 encoding, decoded.
-    pub bc1: &'a [f32],
-    /// What the DDS holds, decoded (equal to `bc1` when seam-aware encoding is off).
-    pub seam_aware: &'a [f32],
+    /// The versions of the texture the close-ups set side by side, in
+    /// order (for a job: input, erased, regular BC1 and what the DDS
+    /// holds). The last is what ships: the overview shows it, and each
+    /// line's brightness is its residual there.
+    pub versions: Vec<Version<'a>>,
     /// Every seam edge.
     pub seams: &'a SeamSet,
     /// Per seam edge (same order as `seams.seams`): true when the edge was
@@ -51,19 +50,59 @@ pub struct SeamPicture<'a> {
     pub alpha_closed: Option<&'a [bool]>,
 }
 
+/// One version of the texture, named as the close-ups' title row names it.
+#[derive(Clone, Copy)]
+pub struct Version<'a> {
+    pub name: &'static str,
+    /// RGB texels, 3 interleaved f32 values per texel in \[0,1\], row-major,
+    /// `grid.width * grid.height` texels.
+    pub data: &'a [f32],
+}
+
+/// The versions of a job's picture: input, erased, regular BC1, and what
+/// the DDS holds (equal to the regular one when seam-aware encoding is off).
+pub fn job_versions<'a>(
+    input: &'a [f32],
+    erased: &'a [f32],
+    regular: &'a [f32],
+    shipped: &'a [f32],
+) -> Vec<Version<'a>> {
+    vec![
+        Version {
+            name: "INPUT",
+            data: input,
+        },
+        Version {
+            name: "ERASED",
+            data: erased,
+        },
+        Version {
+            name: "REGULAR BC1",
+            data: regular,
+        },
+        Version {
+            name: "SEAM-AWARE BC1",
+            data: shipped,
+        },
+    ]
+}
+
 /// Why the picture could not be drawn.
 #[derive(Debug, thiserror::Error)]
 pub enum PictureError {
     /// A texel buffer's length does not match the grid (a caller bug).
     #[error("seams picture: `{buffer}` holds {len} values, expected {expected} (3 per texel)")]
     BufferSize {
-        buffer: &'static str,
+        buffer: String,
         len: usize,
         expected: usize,
     },
     /// `closed` does not have one entry per seam edge (a caller bug).
     #[error("seams picture: {closed} closed flags for {seams} seam edges")]
     ClosedFlags { closed: usize, seams: usize },
+    /// No version to show (a caller bug).
+    #[error("seams picture: no version of the texture to show")]
+    NoVersions,
     /// The texture has no texels.
     #[error("seams picture: empty texture ({width}x{height})")]
     Empty { width: usize, height: usize },
@@ -131,8 +170,6 @@ const TILE_PX: u32 = CROP_TEXELS * ZOOM;
 const TILE_GAP: u32 = 3;
 /// Wider gap between versions, so the pairs read as pairs.
 const VERSION_GAP: u32 = 12;
-/// Tiles per strip row: 4 versions × 2 sides.
-const TILES_PER_ROW: u32 = 8;
 /// Gap between strip rows.
 const ROW_GAP: u32 = 6;
 
@@ -142,8 +179,6 @@ const TEXT_SCALE: u32 = 2;
 const TEXT: [u8; 3] = [230, 230, 230];
 /// The strip's title row: a line of text and a gap.
 const TITLE_H: u32 = TEXT_SCALE * GLYPH_H + ROW_GAP;
-/// The strip's versions, as its title row names them.
-const VERSION_NAMES: [&str; 4] = ["INPUT", "ERASED", "REGULAR BC1", "SEAM-AWARE BC1"];
 /// Words over a close-up sit on a box this dark, inset this far.
 const LABEL_BACKGROUND: [u8; 3] = [0, 0, 0];
 const LABEL_PAD: u32 = 2;
@@ -161,11 +196,12 @@ struct Rect {
 /// input, same bytes.
 pub fn seams_png(p: &SeamPicture) -> Result<Vec<u8>, PictureError> {
     validate(p)?;
+    let shipped = shipped(p);
     let residuals: Vec<f64> = p
         .seams
         .seams
         .iter()
-        .map(|e| residual(p.grid, p.seam_aware, e))
+        .map(|e| residual(p.grid, shipped, e))
         .collect();
     let rows = worst_closed(p.closed, &residuals);
 
@@ -188,7 +224,7 @@ pub fn seams_png(p: &SeamPicture) -> Result<Vec<u8>, PictureError> {
     let content_w = if rows.is_empty() {
         pw.max(legend_w)
     } else {
-        pw.max(strip_width()).max(legend_w)
+        pw.max(strip_width(p.versions.len())).max(legend_w)
     };
     let mut img =
         RgbImage::from_pixel(content_w + 2 * MARGIN, strip_top + strip_h, Rgb(BACKGROUND));
@@ -205,17 +241,15 @@ fn validate(p: &SeamPicture) -> Result<(), PictureError> {
     if width == 0 || height == 0 {
         return Err(PictureError::Empty { width, height });
     }
+    if p.versions.is_empty() {
+        return Err(PictureError::NoVersions);
+    }
     let expected = width * height * CHANNELS;
-    for (buffer, data) in [
-        ("input", p.input),
-        ("erased", p.erased),
-        ("bc1", p.bc1),
-        ("seam_aware", p.seam_aware),
-    ] {
-        if data.len() != expected {
+    for v in &p.versions {
+        if v.data.len() != expected {
             return Err(PictureError::BufferSize {
-                buffer,
-                len: data.len(),
+                buffer: v.name.to_string(),
+                len: v.data.len(),
                 expected,
             });
         }
@@ -229,6 +263,11 @@ fn validate(p: &SeamPicture) -> Result<(), PictureError> {
         }
     }
     Ok(())
+}
+
+/// The version that ships (validated: there is one).
+fn shipped<'a>(p: &SeamPicture<'a>) -> &'a [f32] {
+    p.versions.last().map_or(&[], |v| v.data)
 }
 
 fn encode_png(img: &RgbImage) -> Result<Vec<u8>, PictureError> {
@@ -370,7 +409,7 @@ fn draw_panel_texture(img: &mut RgbImage, p: &SeamPicture, r: Rect) {
             for y in y0..y1 {
                 for x in x0..x1 {
                     let t = (y * tw + x) * CHANNELS;
-                    for (s, v) in sum.iter_mut().zip(&p.seam_aware[t..t + CHANNELS]) {
+                    for (s, v) in sum.iter_mut().zip(&shipped(p)[t..t + CHANNELS]) {
                         *s += v;
                     }
                 }
@@ -472,8 +511,9 @@ fn tile_x(k: u32) -> u32 {
     k * TILE_PX + (k / 2) * VERSION_GAP + (k % 2) * TILE_GAP
 }
 
-fn strip_width() -> u32 {
-    tile_x(TILES_PER_ROW - 1) + TILE_PX
+/// A strip row's width: two tiles per version.
+fn strip_width(versions: usize) -> u32 {
+    tile_x(2 * versions as u32 - 1) + TILE_PX
 }
 
 /// One row per edge in `rows`: for each version, the crops around half-edge
@@ -482,16 +522,15 @@ fn draw_strip(img: &mut RgbImage, p: &SeamPicture, rows: &[usize], top: u32) {
     if rows.is_empty() {
         return;
     }
-    for (v, name) in VERSION_NAMES.iter().enumerate() {
-        let x = MARGIN + tile_x(2 * v as u32);
-        draw_text(img, x, top, name, TEXT_SCALE, Rgb(TEXT));
+    for (k, v) in p.versions.iter().enumerate() {
+        let x = MARGIN + tile_x(2 * k as u32);
+        draw_text(img, x, top, v.name, TEXT_SCALE, Rgb(TEXT));
     }
-    let versions = [p.input, p.erased, p.bc1, p.seam_aware];
     for (row, &e) in rows.iter().enumerate() {
         let edge = &p.seams.seams[e];
         let y = top + TITLE_H + row as u32 * (TILE_PX + ROW_GAP);
         let mut k = 0;
-        for data in versions {
+        for data in p.versions.iter().map(|v| v.data) {
             for half in [edge.a, edge.b] {
                 let r = Rect {
                     x: MARGIN + tile_x(k),
@@ -733,10 +772,7 @@ mod tests {
         fn picture<'a>(&'a self, closed: &'a [bool]) -> SeamPicture<'a> {
             SeamPicture {
                 grid: &self.grid,
-                input: &self.input,
-                erased: &self.erased,
-                bc1: &self.erased,
-                seam_aware: &self.seam_aware,
+                versions: job_versions(&self.input, &self.erased, &self.erased, &self.seam_aware),
                 seams: &self.seams,
                 closed,
                 alpha_closed: None,
@@ -849,11 +885,11 @@ mod tests {
         let one = f.draw(&[false, false, true]);
         assert_eq!(
             one.dimensions(),
-            (strip_width() + 2 * MARGIN, ROWS_TOP + TILE_PX + MARGIN)
+            (strip_width(4) + 2 * MARGIN, ROWS_TOP + TILE_PX + MARGIN)
         );
         let two = f.draw(&[true, true, false]);
         let h = ROWS_TOP + 2 * TILE_PX + ROW_GAP + MARGIN;
-        assert_eq!(two.dimensions(), (strip_width() + 2 * MARGIN, h));
+        assert_eq!(two.dimensions(), (strip_width(4) + 2 * MARGIN, h));
     }
 
     #[test]
@@ -894,7 +930,10 @@ mod tests {
     fn words_name_the_columns_the_lines_and_each_jump() {
         let f = fixture();
         let img = f.draw(&[true, true, false]);
-        for (v, name) in VERSION_NAMES.iter().enumerate() {
+        for (v, name) in ["INPUT", "ERASED", "REGULAR BC1", "SEAM-AWARE BC1"]
+            .iter()
+            .enumerate()
+        {
             let x = MARGIN + tile_x(2 * v as u32);
             assert!(shows(&img, x, STRIP_TOP, name), "{name}");
         }
@@ -937,15 +976,13 @@ mod tests {
             })
         ));
         p.closed = &[true; 3];
-        p.bc1 = &f.input[..10];
+        p.versions[2].data = &f.input[..10];
         assert!(matches!(
             seams_png(&p),
-            Err(PictureError::BufferSize {
-                buffer: "bc1",
-                len: 10,
-                ..
-            })
+            Err(PictureError::BufferSize { ref buffer, len: 10, .. }) if buffer == "REGULAR BC1"
         ));
+        p.versions.clear();
+        assert!(matches!(seams_png(&p), Err(PictureError::NoVersions)));
     }
 
     #[test]
@@ -972,10 +1009,7 @@ mod tests {
         let seams = SeamSet::default();
         let p = SeamPicture {
             grid: &grid,
-            input: &data,
-            erased: &data,
-            bc1: &data,
-            seam_aware: &data,
+            versions: job_versions(&data, &data, &data, &data),
             seams: &seams,
             closed: &[],
             alpha_closed: None,

@@ -20,10 +20,12 @@ use crate::model::{
     find_seams, plan_from_memory, LoadOptions, PlannedTexture, Resolver, SeamSet, Texture,
     UvTriangle,
 };
+use crate::picture::{seams_png, SeamPicture, Version};
 use crate::seam::grid::TexelGrid;
 use crate::seam::metric::colour_channels;
 use crate::seam::SeamMetric;
 
+use super::level::rgb;
 use super::{Format, OutputFile, Report};
 
 /// The job's files first, then the input's: what the rewritten model (and
@@ -55,10 +57,14 @@ pub(super) struct Lods {
 /// One processed texture's level-0 images, decoded once for every level.
 struct Measured<'a> {
     image: usize,
+    /// The texture's name in the job's files (`<name>.seams.png`).
+    name: &'a str,
     width: usize,
     height: usize,
     erased: Texture,
     dds: Option<Vec<f32>>,
+    /// The erased image as RGB, with `pictures`.
+    erased_rgb: Option<Vec<f32>>,
     /// The closed seams of the full mesh, each as its half-edges' UVs.
     closed: &'a [[[[f64; 2]; 2]; 2]],
 }
@@ -172,10 +178,12 @@ pub fn make_levels(
                 .map(|(seams, _, triangles)| ClosedSeams::new(seams, triangles, m.closed))
         })
         .collect();
-    let measure = |bytes: &[u8]| -> Result<Vec<LodTexture>, LodError> {
-        level_seams(model_name, bytes, &resolver, report, &measured, &chains)
+    let measure = |bytes: &[u8], level: usize| {
+        level_seams(
+            model_name, bytes, &resolver, report, &measured, &chains, level,
+        )
     };
-    let full_textures = measure(model)?;
+    let (full_textures, _) = measure(model, 0)?;
     let judges = texture_judges(&measured, &found, &chains, &full_textures, &samplings);
     let constraints = match constrained {
         Constrained::Seams => ModelConstraints::Seams {
@@ -224,7 +232,8 @@ pub fn make_levels(
     let mut out_files = Vec::new();
     for (k, g) in geometry.iter().enumerate() {
         let glb = gltf_lod::level_glb(model, &g.indices)?;
-        let textures = measure(&glb)?;
+        let (textures, pictures) = measure(&glb, k + 1)?;
+        out_files.extend(pictures);
         let file = match referring {
             Some(base) => {
                 let name = format!("{stem}.lod{}.glb", k + 1);
@@ -313,12 +322,15 @@ fn measured_textures<'a>(report: &'a Report, files: &[OutputFile]) -> Vec<Measur
                 let l = d.levels.into_iter().next()?;
                 decode_image(&l.blocks, l.width as usize, l.height as usize).ok()
             });
+        let erased_rgb = report.options.pictures.then(|| rgb(&erased));
         out.push(Measured {
             image: t.image,
+            name: &t.name,
             width: t.width,
             height: t.height,
             erased,
             dds,
+            erased_rgb,
             closed: &t.closed_seams,
         });
     }
@@ -427,8 +439,10 @@ fn texture_judges<'a>(
     judges
 }
 
-/// The seam figures of every processed texture on the mesh of `bytes`;
-/// `chains` holds each texture's full-mesh seams with their verdicts.
+/// The seam figures of every processed texture on the mesh of `bytes`
+/// (level `level`); `chains` holds each texture's full-mesh seams with
+/// their verdicts. With `pictures`, below level 0 (the job's own picture
+/// shows that), each texture's `<name>.lodN.seams.png` too.
 fn level_seams(
     name: &str,
     bytes: &[u8],
@@ -436,16 +450,28 @@ fn level_seams(
     report: &Report,
     measured: &[Measured],
     chains: &[Option<ClosedSeams>],
-) -> Result<Vec<LodTexture>, LodError> {
+    level: usize,
+) -> Result<(Vec<LodTexture>, Vec<OutputFile>), LodError> {
     let (found, _) = texture_seams(name, bytes, files, report, measured)?;
     let mut out = Vec::new();
+    let mut pictures = Vec::new();
     for ((m, found), chains) in measured.iter().zip(found).zip(chains) {
         let Some((seams, grid, triangles)) = found else {
             continue;
         };
-        let closed = match chains {
-            Some(c) => seams.select(&c.classify(&seams, &triangles)),
-            None => seams.clone(),
+        let verdicts = match chains {
+            Some(c) => c.classify(&seams, &triangles),
+            None => vec![true; seams.seams.len()],
+        };
+        let closed = seams.select(&verdicts);
+        let picture = match &m.erased_rgb {
+            Some(erased) if level > 0 => {
+                let file = level_picture(m, erased, &grid, &seams, &verdicts, level)?;
+                let name = file.name.clone();
+                pictures.push(file);
+                Some(name)
+            }
+            _ => None,
         };
         let channels = m.erased.channels;
         let compared = colour_channels(channels);
@@ -466,7 +492,43 @@ fn level_seams(
             seam_rms_dds,
             seam_rms_closed_erased,
             seam_rms_closed_dds,
+            seams_picture: picture,
         });
     }
-    Ok(out)
+    Ok((out, pictures))
+}
+
+/// `<name>.lodN.seams.png`: the level's seams over the texture, lit by what
+/// the DDS leaves of them, with close-ups of the worst closed ones in the
+/// erased texture and the DDS (the same texture serves every level; what
+/// changes is where the seams run).
+fn level_picture(
+    m: &Measured,
+    erased: &[f32],
+    grid: &TexelGrid,
+    seams: &SeamSet,
+    closed: &[bool],
+    level: usize,
+) -> Result<OutputFile, LodError> {
+    let mut versions = vec![Version {
+        name: "ERASED",
+        data: erased,
+    }];
+    if let Some(dds) = &m.dds {
+        versions.push(Version {
+            name: "SEAM-AWARE BC1",
+            data: dds,
+        });
+    }
+    let bytes = seams_png(&SeamPicture {
+        grid,
+        versions,
+        seams,
+        closed,
+        alpha_closed: None,
+    })?;
+    Ok(OutputFile {
+        name: format!("{}.lod{level}.seams.png", m.name),
+        bytes,
+    })
 }

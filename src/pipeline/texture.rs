@@ -32,7 +32,7 @@ use crate::bc1::{self, Block, Decoder};
 use crate::bc7;
 use crate::mips;
 use crate::model::{Texture, TextureBinding};
-use crate::picture::{seams_png, SeamPicture};
+use crate::picture::{job_versions, seams_png, SeamPicture};
 use crate::resize::SizeChange;
 use crate::seam::{colour_channels, SeamMetric};
 
@@ -349,10 +349,7 @@ pub(super) fn finish_texture(
             .map_or((&erased_rgb, &erased_rgb), |(r, s)| (r, s));
         let picture = SeamPicture {
             grid: &level0.grid,
-            input: &input_rgb,
-            erased: &erased_rgb,
-            bc1: regular,
-            seam_aware: shipped,
+            versions: job_versions(&input_rgb, &erased_rgb, regular, shipped),
             seams: &level0.seams,
             closed: &level0.verdicts.closed,
             alpha_closed: level0.alpha.as_ref().map(|a| a.verdicts.closed.as_slice()),
