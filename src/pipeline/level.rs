@@ -16,7 +16,9 @@ use crate::bc1::{self, Block};
 use crate::model::{find_seams, SeamSet, Texture, TextureBinding, UvTriangle};
 use crate::seam::charts::{harmed, Charts, HARM_PSNR_DB};
 use crate::seam::classify::{classify, ClassifyOptions, SeamVerdicts};
-use crate::seam::erase::{erase, EraseOptions, EraseStats, Mode, BAND_MARGIN, MIP_BAND_MARGIN};
+use crate::seam::erase::{
+    erase_within, EraseOptions, EraseStats, Erased, Mode, BAND_MARGIN, MIP_BAND_MARGIN,
+};
 use crate::seam::masking::{mask, MaskingOptions};
 use crate::seam::metric::seam_points_texel_length;
 use crate::seam::padding::pad_left_seams;
@@ -175,16 +177,31 @@ fn judged_solve(
     charts: &Charts,
     (opts, rung): (&ProcessOptions, Rung),
 ) -> Result<(Solved, Vec<ChartHarm>), PipelineError> {
-    let run = |closed: &[bool]| solve(b, grid, data, channels, seams, closed, charts, (opts, rung));
+    // Each solve after the first starts from the band the one before ended
+    // with: sparing seams leaves the rest's band as it was.
+    let run = |closed: &[bool], prior: Option<&Solved>| {
+        let prior = prior.and_then(|p| p.band.as_deref());
+        solve(
+            b,
+            grid,
+            data,
+            channels,
+            seams,
+            closed,
+            charts,
+            (opts, rung),
+            prior,
+        )
+    };
     let psnr = |solved: &Solved| charts.psnr_per_chart(&solved.data, data, channels, compared);
-    let mut solved = run(&verdicts.closed)?;
+    let mut solved = run(&verdicts.closed, None)?;
     let mut per_chart = psnr(&solved);
     if !opts.erase_all {
         // The middle zone closes only where that repaints no chart.
         let spared = verdicts.spare(seams, charts, &harmed(&per_chart));
         if spared > 0 {
             tracing::debug!(spared, "seams left to spare their charts");
-            solved = run(&verdicts.closed)?;
+            solved = run(&verdicts.closed, Some(&solved))?;
             per_chart = psnr(&solved);
         }
         let still = harmed(&per_chart);
@@ -192,7 +209,7 @@ fn judged_solve(
             let spared = verdicts.spare_touching(grid, seams, charts, &still);
             if spared > 0 {
                 tracing::debug!(spared, "seams of every zone left to spare their charts");
-                solved = run(&verdicts.closed)?;
+                solved = run(&verdicts.closed, Some(&solved))?;
                 per_chart = psnr(&solved);
             }
         }
@@ -296,10 +313,13 @@ struct Solved {
     padded: usize,
     data: Vec<f32>,
     stats: EraseStats,
+    /// The erasure's last band (see [`erase_within`]).
+    band: Option<Vec<bool>>,
 }
 
 /// Pads the gutter along the seams left, then makes the closed seams agree,
-/// over `channels` interleaved channels of `data`.
+/// over `channels` interleaved channels of `data`, starting from the band
+/// `prior` where given.
 #[allow(clippy::too_many_arguments)]
 fn solve(
     b: &TextureBinding,
@@ -310,13 +330,14 @@ fn solve(
     closed: &[bool],
     charts: &Charts,
     (opts, rung): (&ProcessOptions, Rung),
+    prior: Option<&[bool]>,
 ) -> Result<Solved, PipelineError> {
     let selected = seams.select(closed);
     let mut input = data.to_vec();
     let padded = pad_left_seams(grid, &mut input, channels, seams, closed, charts);
     let classes = TexelClasses::new(grid, &b.triangles, &selected);
-    let (data, stats) = match opts.method {
-        Method::Erase => erase(
+    let erased = match opts.method {
+        Method::Erase => erase_within(
             grid,
             &input,
             channels,
@@ -329,6 +350,7 @@ fn solve(
                 },
                 ..EraseOptions::new(opts.mode)
             },
+            prior,
         )
         .map_err(|source| PipelineError::Erase {
             name: b.name.clone(),
@@ -347,15 +369,20 @@ fn solve(
                 name: b.name.clone(),
                 source,
             })?;
-            (out, EraseStats::default())
+            Erased {
+                data: out,
+                stats: EraseStats::default(),
+                band: None,
+            }
         }
     };
     Ok(Solved {
         closed: selected,
         classes,
         padded,
-        data,
-        stats,
+        data: erased.data,
+        stats: erased.stats,
+        band: erased.band,
     })
 }
 

@@ -183,6 +183,32 @@ pub fn erase(
     classes: &TexelClasses,
     opts: &EraseOptions,
 ) -> Result<(Vec<f32>, EraseStats), EraseError> {
+    erase_within(grid, input, channels, seams, classes, opts, None).map(|e| (e.data, e.stats))
+}
+
+/// What [`erase_within`] made.
+pub struct Erased {
+    pub data: Vec<f32>,
+    pub stats: EraseStats,
+    /// The band solved for last (`None` where every texel that may change
+    /// was): what a solve of nearly the same seams can start from.
+    pub band: Option<Vec<bool>>,
+}
+
+/// [`erase`], its first band widened to `prior` (a band a solve of nearly
+/// the same seams ended with). Where some of the seams of a first solve
+/// are spared and the texture solved again, the band the first solve had
+/// to grow to is what the second needs too; starting from it saves the
+/// second growing solve (the controller's level 0: four solves to three).
+pub fn erase_within(
+    grid: &TexelGrid,
+    input: &[f32],
+    channels: usize,
+    seams: &SeamSet,
+    classes: &TexelClasses,
+    opts: &EraseOptions,
+    prior: Option<&[bool]>,
+) -> Result<Erased, EraseError> {
     let w = &opts.weights;
     let t0 = std::time::Instant::now();
     let max_radius = grid.width.max(grid.height);
@@ -193,7 +219,11 @@ pub fn erase(
     );
     let jumps = std::mem::take(&mut terms.jumps);
     if terms.points.is_empty() {
-        return Ok((input.to_vec(), EraseStats::default()));
+        return Ok(Erased {
+            data: input.to_vec(),
+            stats: EraseStats::default(),
+            band: None,
+        });
     }
     let t_count = classes.free.iter().filter(|f| !**f).count().max(1);
     let change = w.change / t_count as f64;
@@ -233,7 +263,11 @@ pub fn erase(
             band_radius: None,
             solves: 1,
         };
-        return Ok((x.0, stats));
+        return Ok(Erased {
+            data: x.0,
+            stats,
+            band: None,
+        });
     }
 
     let ratio = decay_per_texel(change / w.grad);
@@ -241,7 +275,16 @@ pub fn erase(
     // The first band is found on one thread, the seam blocks summed on the
     // other: neither needs the other.
     let (mut band, seam) = rayon::join(
-        || first_band(grid, &jumps, &dist, &movable, ratio, tol / opts.band_margin),
+        || {
+            let mut band = first_band(grid, &jumps, &dist, &movable, ratio, tol / opts.band_margin);
+            if let Some(prior) = prior.filter(|p| p.len() == band.len()) {
+                band.par_iter_mut()
+                    .zip(prior)
+                    .zip(&movable)
+                    .for_each(|((b, &p), &m)| *b |= p && m);
+            }
+            band
+        },
         seam_blocks,
     );
     // The points live on in the blocks. Freed now, their pages (over 20 MB on
@@ -279,7 +322,11 @@ pub fn erase(
                 band_radius: reach,
                 solves,
             };
-            return Ok((out, stats));
+            return Ok(Erased {
+                data: out,
+                stats,
+                band: Some(band),
+            });
         };
         band = wider;
         last = Some(out);
