@@ -461,6 +461,14 @@ fn same_input_gives_identical_bytes() {
 }
 
 fn erase_floats(rel: &str, full: bool) -> (Vec<f32>, f64, f64) {
+    let (out, before, after, _) = erase_with_stats(rel, full);
+    (out, before, after)
+}
+
+fn erase_with_stats(
+    rel: &str,
+    full: bool,
+) -> (Vec<f32>, f64, f64, seamstress::seam::erase::EraseStats) {
     use seamstress::seam::erase::{erase, EraseOptions};
     use seamstress::seam::TexelClasses;
     let (b, grid, seams) = first_texture(rel);
@@ -468,12 +476,12 @@ fn erase_floats(rel: &str, full: bool) -> (Vec<f32>, f64, f64) {
     let classes = TexelClasses::new(&grid, &b.triangles, &seams);
     let mut opts = EraseOptions::new(Mode::Local);
     opts.full = full;
-    let (out, _) = erase(&grid, &t.data, t.channels, &seams, &classes, &opts).unwrap();
+    let (out, stats) = erase(&grid, &t.data, t.channels, &seams, &classes, &opts).unwrap();
     let metric = SeamMetric::new(&grid, &seams);
     let cc = colour_channels(t.channels);
     let before = metric.dtotal(&t.data, t.channels, cc);
     let after = metric.dtotal(&out, t.channels, cc);
-    (out, before, after)
+    (out, before, after, stats)
 }
 
 #[test]
@@ -487,10 +495,19 @@ fn float_solution_is_seam_free() {
     }
 }
 
+/// On this cube the first band leaks at one texel and is widened, and the
+/// widened band is solved again only around the widening (`patched`), the
+/// rest held at the first solution: still the full solve within the
+/// tolerance.
 #[test]
 fn band_solution_matches_the_full_solve() {
     let rel = "cube/cube_gradient_128.glb";
-    let (band, _, _) = erase_floats(rel, false);
+    let (band, _, _, stats) = erase_with_stats(rel, false);
+    assert_eq!(stats.solves, 2, "{stats:?}");
+    assert!(
+        stats.patched > 0 && stats.patched < stats.unknowns / 2,
+        "{stats:?}"
+    );
     let (full, _, _) = erase_floats(rel, true);
     let worst = band
         .iter()

@@ -38,12 +38,14 @@ struct Block {
 }
 
 /// Assembles `A x = b` for the texels with `unknown[t] != u32::MAX`
-/// (numbered in texel order); the others are held at `input`.
-/// `b` is interleaved by channel.
+/// (numbered in texel order); the others are held at `held` (the input, or
+/// a solution a local re-solve corrects), while the change and gradient
+/// terms keep to `input`. `b` is interleaved by channel.
 #[allow(clippy::too_many_arguments)]
 pub fn assemble(
     grid: &TexelGrid,
     input: &[f32],
+    held: &[f32],
     channels: usize,
     classes: &TexelClasses,
     seam: &SeamBlocks,
@@ -115,7 +117,16 @@ pub fn assemble(
         .map(|(texels, out)| {
             by_channels!(
                 ch,
-                lattice_rows(grid, input, classes, unknown, w, &seam_rows, texels, out)
+                lattice_rows(
+                    grid,
+                    (input, held),
+                    classes,
+                    unknown,
+                    w,
+                    &seam_rows,
+                    texels,
+                    out
+                )
             )
         })
         .collect();
@@ -151,7 +162,7 @@ struct Out<'a> {
 #[allow(clippy::too_many_arguments)]
 fn lattice_rows<const C: usize>(
     grid: &TexelGrid,
-    input: &[f32],
+    (input, held): (&[f32], &[f32]),
     classes: &TexelClasses,
     unknown: &[u32],
     w: &Weights,
@@ -212,10 +223,11 @@ fn lattice_rows<const C: usize>(
             let both_inside = classes.inside[t] && classes.inside[s];
             let us = unknown[s];
             let ps: [f32; C] = input[s * C..(s + 1) * C].try_into().expect("C values");
+            let hs: [f32; C] = held[s * C..(s + 1) * C].try_into().expect("C values");
             for c in 0..C {
                 let (a, b) = (f64::from(p0[c]), f64::from(ps[c]));
                 let target = if both_inside { a - b } else { 0.0 };
-                let held = if us == NONE { b } else { 0.0 };
+                let held = if us == NONE { f64::from(hs[c]) } else { 0.0 };
                 r[c] += w.grad * (target + held);
             }
             if us != NONE {

@@ -121,6 +121,9 @@ pub struct EraseStats {
     /// for (`None`: every texel that may change was solved for).
     pub band_radius: Option<usize>,
     pub solves: usize,
+    /// Unknowns of the solves that moved only the texels around a widening
+    /// (see `local_patch`), summed; 0 where none did.
+    pub patched: usize,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -239,11 +242,12 @@ pub fn erase_within(
         elapsed_ms = t0.elapsed().as_millis() as u64,
         "seam terms and distances"
     );
-    // `start`: the texel values an iterative solve starts from.
-    let solve = |band: &[bool], start: &[f32], seam: &SeamBlocks| {
+    // `start`: the texel values an iterative solve starts from; `held`:
+    // those of the texels outside `band`.
+    let solve = |band: &[bool], (start, held): (&[f32], &[f32]), seam: &SeamBlocks| {
         solve_band(
             grid,
-            input,
+            (input, held),
             channels,
             classes,
             seam,
@@ -257,11 +261,12 @@ pub fn erase_within(
     };
     let seam_blocks = || SeamBlocks::new(&terms.points, &movable, input, channels);
     if opts.full {
-        let x = solve(&movable, input, &seam_blocks())?;
+        let x = solve(&movable, (input, input), &seam_blocks())?;
         let stats = EraseStats {
             unknowns: x.1,
             band_radius: None,
             solves: 1,
+            patched: 0,
         };
         return Ok(Erased {
             data: x.0,
@@ -296,17 +301,31 @@ pub fn erase_within(
         "first band chosen"
     );
     let mut solves = 0;
+    let mut patched = 0;
     // A wider band starts from the narrower band's solution, which is already
-    // right near the seams.
+    // right near the seams; where it can, it solves only around the widening
+    // (`patch`, see `local_patch`).
     let mut last: Option<Vec<f32>> = None;
+    let mut patch: Option<Vec<bool>> = None;
+    let no_seam = SeamBlocks::new(&[], &movable, input, channels);
     loop {
-        let (out, unknowns) = solve(&band, last.as_deref().unwrap_or(input), &seam)?;
+        let (out, solved) = match (&patch, &last) {
+            (Some(patch), Some(last)) => solve(patch, (last, last), &no_seam)?,
+            _ => solve(&band, (last.as_deref().unwrap_or(input), input), &seam)?,
+        };
         solves += 1;
         let growth = grow_band(grid, &band, &movable, &out, input, channels, ratio, tol);
+        let unknowns = if patch.is_some() {
+            patched += solved;
+            band.par_iter().filter(|&&b| b).count()
+        } else {
+            solved
+        };
         tracing::debug!(
             rss_mb = crate::heap::resident_mb(),
             elapsed_ms = t0.elapsed().as_millis() as u64,
             unknowns,
+            solved,
             leaks = growth.leaks,
             "erase band solved"
         );
@@ -321,6 +340,7 @@ pub fn erase_within(
                 unknowns,
                 band_radius: reach,
                 solves,
+                patched,
             };
             return Ok(Erased {
                 data: out,
@@ -328,9 +348,58 @@ pub fn erase_within(
                 band: Some(band),
             });
         };
+        patch = local_patch(
+            grid,
+            &band,
+            &wider,
+            &dist,
+            growth.reach + reach_beyond(ratio),
+        );
         band = wider;
         last = Some(out);
     }
+}
+
+/// How much farther than a widening's own reach (in texels) a local
+/// re-solve reaches into the band it widens: [`MIN_BAND`] decay lengths, so
+/// that the correction, which dies out from the widening inwards as the
+/// change does outwards, is far below the tolerance where it is cut off.
+fn reach_beyond(ratio: f64) -> i32 {
+    (MIN_BAND * -1.0 / ratio.ln()).ceil() as i32
+}
+
+/// The texels a widened band's solve must move, where the band before it
+/// was solved already: the widening, and every texel of `wider` within
+/// `reach` (Chebyshev) of it. The energy is quadratic, so the solution on
+/// `wider` is the one on `band` plus a correction that satisfies the same
+/// system with a right-hand side on the widening alone, and dies out away
+/// from it; solving for the correction only within `reach`, the rest held
+/// at the last solution, is the whole solve up to what lies beyond.
+/// `None` where that reaches a seam's texels (their seam terms are the
+/// band's own), or half the band (no saving): the whole band is solved
+/// again then.
+fn local_patch(
+    grid: &TexelGrid,
+    band: &[bool],
+    wider: &[bool],
+    dist: &[u32],
+    reach: i32,
+) -> Option<Vec<bool>> {
+    let mut spread: Vec<i32> = band
+        .par_iter()
+        .zip(wider)
+        .map(|(&b, &w)| if w && !b { reach } else { -1 })
+        .collect();
+    spread_down(&mut spread, grid.width, grid.height);
+    let patch: Vec<bool> = spread
+        .par_iter()
+        .zip(wider)
+        .map(|(&r, &w)| w && r >= 0)
+        .collect();
+    let touches_seam = patch.par_iter().zip(dist).any(|(&p, &d)| p && d == 0);
+    let size = patch.par_iter().filter(|&&p| p).count();
+    let whole = wider.par_iter().filter(|&&w| w).count();
+    (!touches_seam && 2 * size < whole).then_some(patch)
 }
 
 /// The first band: every movable texel where the far-field estimate
@@ -365,8 +434,10 @@ fn first_band(
 /// costs a second solve: on Fox (local mode) margins of 1.5 and 2 leave one
 /// (1.69 M and 1.73 M unknowns first, 1.81 M and 1.82 M in the end), 3 and
 /// more none (1.78 M at 3, 1.82 M at 4). Fox's texture scaled up to 8192²
-/// leaves three leaks at 3 (erase 22.3 s, two solves) and none at 4 (15.6 s;
-/// 28.7 M unknowns). blub and cube_gradient_1024 have none from 1.5 on;
+/// leaves two leaks at 4 (27.96 M unknowns), each widening then solved only
+/// around itself (`local_patch`: 2.1 M, 1.4 M and 1.4 M unknowns, about
+/// 2 s each, against 7 s for the whole band again). blub and
+/// cube_gradient_1024 have none from 1.5 on;
 /// cube_gradient_128, whose change dies out within a dozen texels, has some
 /// at every margin tried (six at 3).
 pub const BAND_MARGIN: f64 = 4.0;
@@ -392,6 +463,8 @@ struct Growth {
     band: Option<Vec<bool>>,
     /// Texels just outside the band that may miss more than the tolerance.
     leaks: usize,
+    /// The widest widening around a leak, in texels.
+    reach: i32,
 }
 
 /// Texels per parallel task of [`grow_band`].
@@ -445,7 +518,11 @@ fn grow_band(
         .filter(|&t| leak(t) > tol)
         .count();
     if leaks == 0 {
-        return Growth { band: None, leaks };
+        return Growth {
+            band: None,
+            leaks,
+            reach: 0,
+        };
     }
     // reach[t] ≥ 0: texel t lies within the needed widening of some leak.
     let mut reach = crate::heap::filled(w * h, -1i32);
@@ -462,6 +539,7 @@ fn grow_band(
                 }
             }
         });
+    let widest = reach.par_iter().copied().max().unwrap_or(0);
     spread_down(&mut reach, w, h);
     let band = band
         .par_iter()
@@ -472,6 +550,7 @@ fn grow_band(
     Growth {
         band: Some(band),
         leaks,
+        reach: widest,
     }
 }
 
@@ -538,11 +617,12 @@ pub const DIRECT_LIMIT: usize = 100_000;
 /// multigrid level (see [`super::multigrid`]).
 const EXACT_RADIUS: u32 = 1;
 
-/// Assembles and solves the energy with the texels in `band` as unknowns.
+/// Assembles and solves the energy with the texels in `band` as unknowns,
+/// the others held at `held`.
 #[allow(clippy::too_many_arguments)]
 fn solve_band(
     grid: &TexelGrid,
-    input: &[f32],
+    (input, held): (&[f32], &[f32]),
     channels: usize,
     classes: &TexelClasses,
     seam: &SeamBlocks,
@@ -569,7 +649,11 @@ fn solve_band(
     // The seam entries are summed on one thread; the multigrid's node
     // placement, which needs only the band, takes the other.
     let (assembled, placed) = rayon::join(
-        || assemble(grid, input, channels, classes, seam, &unknown, n, &weights),
+        || {
+            assemble(
+                grid, input, held, channels, classes, seam, &unknown, n, &weights,
+            )
+        },
         || (!direct).then(|| place_nodes(grid.width, &unknown, n, dist, start, ch)),
     );
     let (a, b) = assembled?;
@@ -596,7 +680,7 @@ fn solve_band(
     // band's system are shaped otherwise and would not fit its holes whole,
     // leaving the peak to where they happen to land (see `heap`).
     crate::heap::release_freed_memory();
-    let mut out = crate::heap::copied(input);
+    let mut out = crate::heap::copied(held);
     out.par_chunks_mut(ch)
         .zip(unknown.par_iter())
         .filter(|(_, &u)| u != u32::MAX)
