@@ -365,7 +365,7 @@ pub fn erase_within(
 /// that the correction, which dies out from the widening inwards as the
 /// change does outwards, is far below the tolerance where it is cut off.
 fn reach_beyond(ratio: f64) -> i32 {
-    (MIN_BAND * -1.0 / ratio.ln()).ceil() as i32
+    (-MIN_BAND / ratio.ln()).ceil() as i32
 }
 
 /// The texels a widened band's solve must move, where the band before it
