@@ -86,28 +86,9 @@ fn processed(rel: &str) -> (PathBuf, Value) {
     .clone()
 }
 
-/// Runs the evaluator; it needs python3 with numpy, pillow and pygltflib
-/// (see [`common::PYTHON`]).
+/// Runs the evaluator on texture `texture` (see [`common::seam_eval`]).
 fn seam_eval(model: &Path, image: Option<&Path>, texture: usize) -> Value {
-    seam_eval_with(model, image, &["--texture", &texture.to_string()])
-}
-
-/// The evaluator with options of its own (`--decoder`, `--agree`, ...).
-fn seam_eval_with(model: &Path, image: Option<&Path>, options: &[&str]) -> Value {
-    let mut cmd = Command::new("python3");
-    cmd.arg(shared().join("tools/seam_eval.py")).arg(model);
-    if let Some(i) = image {
-        cmd.arg(i);
-    }
-    cmd.args(options);
-    let o = cmd.output().expect("python3 runs");
-    assert!(
-        o.status.success(),
-        "seam_eval.py failed on {}: {}",
-        model.display(),
-        String::from_utf8_lossy(&o.stderr)
-    );
-    serde_json::from_slice(&o.stdout).expect("seam_eval prints JSON")
+    common::seam_eval(model, image, &["--texture", &texture.to_string()])
 }
 
 fn close(ours: &Value, theirs: &Value, what: &str) {
@@ -191,7 +172,7 @@ fn per_decoder_figures_agree_with_the_independent_evaluator() {
         assert_eq!(t["bc1_target"], "robust");
         let dds = out.join(t["files"]["dds"].as_str().unwrap());
         for d in ["ideal", "nvidia", "amd"] {
-            let theirs = seam_eval_with(&model, Some(&dds), &["--decoder", d]);
+            let theirs = common::seam_eval(&model, Some(&dds), &["--decoder", d]);
             let ours = &t["bc1_seam_aware"]["decoders"][d];
             close(
                 &ours["seam_rms"],
@@ -217,7 +198,7 @@ fn the_evaluator_confirms_that_charts_painted_apart_are_kept() {
         let (out, report) = processed(rel);
         let t = &report["textures"][0];
         let png = out.join(t["files"]["erased"].as_str().unwrap());
-        let theirs = seam_eval_with(&model, Some(&png), &["--agree", "16", "--charts"]);
+        let theirs = common::seam_eval(&model, Some(&png), &["--agree", "16", "--charts"]);
         eprintln!("{rel}: seam_eval {theirs}");
         let agree = theirs["agree"]["seam_rms"].as_f64().unwrap();
         assert!(agree <= 0.3, "{rel}: agreeing seams at {agree}");

@@ -153,26 +153,6 @@ fn blub_at_a_tenth_keeps_its_seams_closed_where_plain_meshoptimizer_reopens_them
         .is_some_and(|u| !u.as_array().unwrap().contains(&Value::from("MSFT_lod"))));
 }
 
-/// The seam RMS `seam_eval.py` measures on `model` with `image` (texture
-/// `texture`).
-fn seam_eval(model: &Path, image: &Path, texture: usize) -> f64 {
-    let o = std::process::Command::new("python3")
-        .arg(common::shared_assets().join("../tools/seam_eval.py"))
-        .arg(model)
-        .arg(image)
-        .args(["--texture", &texture.to_string()])
-        .output()
-        .expect("python3 runs");
-    assert!(
-        o.status.success(),
-        "seam_eval.py on {}: {}",
-        model.display(),
-        String::from_utf8_lossy(&o.stderr)
-    );
-    let v: Value = serde_json::from_slice(&o.stdout).expect("seam_eval prints JSON");
-    v["seam_rms"].as_f64().unwrap_or(0.0)
-}
-
 /// CesiumMan as one GLB (its image still beside it): the evaluator reads a
 /// GLB's vertices from its own binary chunk, and a level file made from a
 /// `.gltf` refers to the model's `.bin` instead of copying it.
@@ -333,7 +313,13 @@ fn curved_seams_stay_closed_and_the_evaluator_agrees_on_every_level_file() {
             (&texture.files.erased, t.seam_rms_erased),
             (texture.files.dds.as_ref().unwrap(), t.seam_rms_dds),
         ] {
-            let theirs = seam_eval(&file, &dir.join(image), texture.image);
+            let theirs = common::seam_eval(
+                &file,
+                Some(&dir.join(image)),
+                &["--texture", &texture.image.to_string()],
+            )["seam_rms"]
+                .as_f64()
+                .unwrap_or(0.0);
             let ours = at(ours);
             println!(
                 "{}: {image} report {ours:.4}, seam_eval {theirs:.4}",

@@ -156,10 +156,9 @@ mod tests {
         let a = |y: f64| [0.1, y];
         let b = |y: f64| [0.6, y];
         let p = |y: f64| [0.0, y as f32, 0.0];
-        let mut triangles = Vec::new();
-        let mut seams = Vec::new();
-        for k in 0..3 {
-            let (y0, y1) = (0.1 * k as f64, 0.1 * (k + 1) as f64);
+        // The seam edge from y0 to y1, its two sides' triangles added.
+        let seam_edge = |triangles: &mut Vec<UvTriangle>, y0: f64, y1: f64| {
+            let t = triangles.len() as u32;
             for side in [a, b] {
                 triangles.push(UvTriangle {
                     group: 0,
@@ -168,11 +167,14 @@ mod tests {
                 });
             }
             let mut e = edge([a(y0), a(y1)], [b(y0), b(y1)]);
-            e.triangles = [2 * k, 2 * k + 1];
-            seams.push(e);
-        }
+            e.triangles = [t, t + 1];
+            e
+        };
+        let mut triangles = Vec::new();
         let full = SeamSet {
-            seams,
+            seams: (0..3)
+                .map(|k| seam_edge(&mut triangles, 0.1 * k as f64, 0.1 * (k + 1) as f64))
+                .collect(),
             silhouettes: Vec::new(),
         };
         let closed: Vec<_> = [0, 2]
@@ -188,19 +190,7 @@ mod tests {
 
         // A level's edges, each in a triangle of its own.
         let mut level_triangles = Vec::new();
-        let mut level_edge = |y0: f64, y1: f64| {
-            let t = level_triangles.len() as u32;
-            for side in [a, b] {
-                level_triangles.push(UvTriangle {
-                    group: 0,
-                    positions: [p(y0), p(y1), [1.0, 0.0, 0.0]],
-                    uvs: [side(y0), side(y1), [0.9, 0.9]],
-                });
-            }
-            let mut e = edge([a(y0), a(y1)], [b(y0), b(y1)]);
-            e.triangles = [t, t + 1];
-            e
-        };
+        let mut level_edge = |y0: f64, y1: f64| seam_edge(&mut level_triangles, y0, y1);
         let level = SeamSet {
             seams: vec![
                 // The first edge, reversed on both sides.

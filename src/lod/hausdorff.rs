@@ -3,10 +3,6 @@
 //! midpoints and centroids of its triangles) measured against the other
 //! side's surface, the larger of the two largest distances kept.
 
-/// Triangles sampled per side at most; beyond it every k-th triangle is.
-/// Keeps a 100 000-triangle mesh's figure under a second.
-const MAX_SAMPLED_TRIANGLES: usize = 20_000;
-
 /// Samples per parallel task: each costs a ring search of a few cells.
 const SAMPLES_PER_TASK: usize = 1024;
 
@@ -39,13 +35,6 @@ fn triangles(positions: &[[f32; 3]], indices: &[u32]) -> Vec<[V3; 3]> {
         .collect()
 }
 
-/// The symmetric Hausdorff distance between triangle lists `a` and `b`
-/// (indices into `positions`), in the positions' units.
-pub fn symmetric(positions: &[[f32; 3]], a: &[u32], b: &[u32]) -> f64 {
-    let (ta, tb) = (triangles(positions, a), triangles(positions, b));
-    one_sided(&ta, &tb, MAX_SAMPLED_TRIANGLES).max(one_sided(&tb, &ta, MAX_SAMPLED_TRIANGLES))
-}
-
 /// One surface measured against many: its triangles, their search grid
 /// and its samples made once.
 pub struct Reference {
@@ -71,8 +60,8 @@ impl Reference {
     }
 
     /// The symmetric Hausdorff distance to `indices` (into the same
-    /// positions), each side sampled on up to the reference's number of
-    /// triangles: [`symmetric`] where neither side has more.
+    /// positions), in the positions' units, each side sampled on up to the
+    /// reference's number of triangles (every k-th beyond it).
     pub fn symmetric(&self, positions: &[[f32; 3]], indices: &[u32]) -> f64 {
         let other = triangles(positions, indices);
         if self.tris.is_empty() || other.is_empty() {
@@ -98,14 +87,6 @@ fn samples(tris: &[[V3; 3]], most: usize) -> Vec<V3> {
         out.push(c.map(|x| x / 3.0));
     }
     out
-}
-
-/// The largest distance from a sample of `from` to the surface `to`.
-fn one_sided(from: &[[V3; 3]], to: &[[V3; 3]], sampled: usize) -> f64 {
-    if from.is_empty() || to.is_empty() {
-        return 0.0;
-    }
-    farthest(&samples(from, sampled), &Grid::new(to), to)
 }
 
 /// The largest distance from one of `samples` to the surface `to` (searched
@@ -291,11 +272,10 @@ mod tests {
             [0.5, 0.5, 0.25],
         ];
         let flat = [0, 1, 2, 2, 1, 3];
-        assert!(symmetric(&positions, &flat, &flat) < 1e-12);
+        let reference = Reference::new(&positions, &flat, 100);
+        assert!(reference.symmetric(&positions, &flat) < 1e-12);
         let tent = [0, 1, 4, 1, 3, 4, 3, 2, 4, 2, 0, 4];
-        let d = symmetric(&positions, &flat, &tent);
+        let d = reference.symmetric(&positions, &tent);
         assert!((d - 0.25).abs() < 1e-9, "{d}");
-        let reference = Reference::new(&positions, &flat, MAX_SAMPLED_TRIANGLES);
-        assert_eq!(reference.symmetric(&positions, &tent), d);
     }
 }

@@ -4,10 +4,9 @@
 //! `<name>.lodN.glb` beside it.
 
 use std::borrow::Cow;
-
-use crate::bc1::{dds::read_dds, decode_image};
 use std::collections::HashMap;
 
+use crate::bc1::{dds::read_dds, decode_image};
 use crate::lod::closed::ClosedSeams;
 use crate::lod::seam_texture::{Allowance, JudgedImage, SampledTexture, TextureJudge};
 use crate::lod::{

@@ -159,6 +159,27 @@ pub fn limit_address_space(cmd: &mut Command, bytes: u64) {
     }
 }
 
+/// The independent evaluator (`../shared/tools/seam_eval.py`) on `model`,
+/// read with `image` where given, with options of its own (`--texture`,
+/// `--decoder`, `--agree`, ...); needs [`PYTHON`].
+pub fn seam_eval(model: &Path, image: Option<&Path>, options: &[&str]) -> Value {
+    let mut cmd = Command::new("python3");
+    cmd.arg(shared_assets().join("../tools/seam_eval.py"))
+        .arg(model);
+    if let Some(i) = image {
+        cmd.arg(i);
+    }
+    cmd.args(options);
+    let o = cmd.output().expect("python3 runs");
+    assert!(
+        o.status.success(),
+        "seam_eval.py failed on {}: {}",
+        model.display(),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    serde_json::from_slice(&o.stdout).expect("seam_eval prints JSON")
+}
+
 /// The Khronos validator's verdict on a model written by `process` (needs
 /// [`GLTF_VALIDATOR`]).
 pub fn gltf_validate(model: &Path) -> Value {
