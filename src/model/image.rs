@@ -80,6 +80,11 @@ impl TextureError {
 /// buffers, JPEG component planes).
 const DECODER_SCRATCH_BYTES: u64 = 256 << 20;
 
+/// The fast deflate: Fox's erased 2048² texture in 18 ms and 1.30 MB,
+/// against 250 ms and 1.00 MB at the default level (a tenth of the whole
+/// job's CPU time, for a file that ships beside a 2.8 MB DDS).
+const PNG_COMPRESSION: CompressionType = CompressionType::Fast;
+
 /// Error messages from the decoders may span lines; reports need one line.
 fn one_line(s: impl std::fmt::Display) -> String {
     s.to_string()
@@ -259,7 +264,7 @@ impl Texture {
             }
         };
         let mut out = Vec::new();
-        PngEncoder::new_with_quality(&mut out, CompressionType::Default, FilterType::Adaptive)
+        PngEncoder::new_with_quality(&mut out, PNG_COMPRESSION, FilterType::Adaptive)
             .write_image(&bytes, w, h, color)
             .map_err(|e| TextureError::Encode(one_line(e)))?;
         Ok(out)

@@ -9,6 +9,7 @@
 use std::collections::HashMap;
 
 use super::grid::TexelGrid;
+use super::metric::{in_chunks, TEXELS_PER_TASK};
 use super::quadrature::{for_each_cell, Segment};
 use super::texels::for_each_texel_inside;
 use crate::model::{SeamEdge, UvTriangle};
@@ -188,17 +189,30 @@ impl Charts {
         channels: usize,
         compared: usize,
     ) -> Vec<Option<f64>> {
+        let parts = in_chunks(self.of_texel.len(), TEXELS_PER_TASK, |range| {
+            let mut sum = vec![0.0f64; self.count];
+            let mut texels = vec![0usize; self.count];
+            for t in range {
+                let c = self.of_texel[t];
+                if c == Self::NONE {
+                    continue;
+                }
+                for k in 0..compared {
+                    let d =
+                        f64::from(image[t * channels + k]) - f64::from(reference[t * channels + k]);
+                    sum[c as usize] += d * d;
+                }
+                texels[c as usize] += 1;
+            }
+            (sum, texels)
+        });
         let mut sum = vec![0.0f64; self.count];
         let mut texels = vec![0usize; self.count];
-        for (t, &c) in self.of_texel.iter().enumerate() {
-            if c == Self::NONE {
-                continue;
+        for (ps, pn) in parts {
+            for c in 0..self.count {
+                sum[c] += ps[c];
+                texels[c] += pn[c];
             }
-            for k in 0..compared {
-                let d = f64::from(image[t * channels + k]) - f64::from(reference[t * channels + k]);
-                sum[c as usize] += d * d;
-            }
-            texels[c as usize] += 1;
         }
         sum.iter()
             .zip(&texels)

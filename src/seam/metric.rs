@@ -1,5 +1,7 @@
 //! The seam discontinuity metric (SPEC §3) and inside-texel PSNR.
 
+use rayon::prelude::*;
+
 use super::grid::TexelGrid;
 use super::quadrature::{seam_difference_points, QuadPoint, Segment};
 use crate::model::SeamSet;
@@ -32,14 +34,18 @@ impl SeamMetric {
 
     /// Dtotal summed over the first `compared` channels of interleaved `data`.
     pub fn dtotal(&self, data: &[f32], channels: usize, compared: usize) -> f64 {
-        self.points
-            .iter()
-            .map(|q| {
-                (0..compared)
-                    .map(|c| q.weight * q.apply(data, channels, c).powi(2))
-                    .sum::<f64>()
-            })
-            .sum()
+        in_chunks(self.points.len(), POINTS_PER_TASK, |range| {
+            self.points[range]
+                .iter()
+                .map(|q| {
+                    (0..compared)
+                        .map(|c| q.weight * q.apply(data, channels, c).powi(2))
+                        .sum::<f64>()
+                })
+                .sum::<f64>()
+        })
+        .into_iter()
+        .sum()
     }
 
     /// Length-weighted RMS difference across the seams, in 8-bit levels;
@@ -70,19 +76,44 @@ pub fn psnr(
     compared: usize,
     mask: &[bool],
 ) -> Option<f64> {
-    let mut sum = 0.0;
-    let mut n = 0usize;
-    for (t, _) in mask.iter().enumerate().filter(|(_, m)| **m) {
-        for c in 0..compared {
-            let d = f64::from(image[t * channels + c]) - f64::from(reference[t * channels + c]);
-            sum += d * d;
+    let parts = in_chunks(mask.len(), TEXELS_PER_TASK, |range| {
+        let mut sum = 0.0;
+        let mut n = 0usize;
+        for t in range.filter(|&t| mask[t]) {
+            for c in 0..compared {
+                let d = f64::from(image[t * channels + c]) - f64::from(reference[t * channels + c]);
+                sum += d * d;
+            }
+            n += compared;
         }
-        n += compared;
-    }
+        (sum, n)
+    });
+    let (sum, n) = parts
+        .into_iter()
+        .fold((0.0, 0), |(s, n), (ps, pn)| (s + ps, n + pn));
     if n == 0 || sum == 0.0 {
         return None;
     }
     Some(10.0 * (n as f64 / sum).log10())
+}
+
+/// Texels per parallel task of the image-wide sums.
+pub(crate) const TEXELS_PER_TASK: usize = 1 << 16;
+/// Seam points per parallel task of [`SeamMetric::dtotal`].
+const POINTS_PER_TASK: usize = 1 << 12;
+
+/// `part` of each run of `chunk` indices below `n`, in order. The runs are
+/// fixed by `n` and `chunk` alone, and their results are combined by the
+/// caller in order, so the sums do not depend on the thread count.
+pub(crate) fn in_chunks<T: Send>(
+    n: usize,
+    chunk: usize,
+    part: impl Fn(std::ops::Range<usize>) -> T + Sync,
+) -> Vec<T> {
+    (0..n.div_ceil(chunk))
+        .into_par_iter()
+        .map(|i| part(i * chunk..((i + 1) * chunk).min(n)))
+        .collect()
 }
 
 /// The seam differences at the Gauss points of every seam, weighted by the
