@@ -428,8 +428,14 @@ pub fn optimise(
         );
         let mut settled = vec![false; states.len()];
         let mut energy = total_energy(p, &layout, &states, opts);
+        let decoders = opts.target.decoders().len() as f64;
         for _ in 0..opts.max_sweeps {
             stats.sweeps += 1;
+            // What the sweep takes off the energy: the blocks of a wave are
+            // not neighbours, so their local falls add up to the total's,
+            // which then needs no new sum over every seam point per sweep
+            // (and no difference of two large sums).
+            let mut fell = 0.0;
             for wave in &waves {
                 let due: Vec<u32> = wave
                     .iter()
@@ -437,14 +443,15 @@ pub fn optimise(
                     .filter(|&s| !settled[s as usize])
                     .collect();
                 let improve = |&s: &u32| improve_block(p, &layout, &states, s as usize, opts);
-                let found: Vec<(State, bool)> = if due.len() >= MIN_PARALLEL_WAVE {
+                let found: Vec<Improved> = if due.len() >= MIN_PARALLEL_WAVE {
                     due.par_iter().map(improve).collect()
                 } else {
                     due.iter().map(improve).collect()
                 };
-                for (&s, (state, fixed)) in due.iter().zip(found) {
-                    let s = s as usize;
-                    settled[s] = fixed;
+                for (&s, found) in due.iter().zip(found) {
+                    let (s, state) = (s as usize, found.state);
+                    settled[s] = found.fixed;
+                    fell += found.fell;
                     if !state.same(&states[s]) {
                         states[s] = state;
                         for &n in &neighbours[s] {
@@ -453,9 +460,8 @@ pub fn optimise(
                     }
                 }
             }
-            let e = total_energy(p, &layout, &states, opts);
-            let fell = energy - e;
-            energy = e;
+            let fell = fell / decoders;
+            energy -= fell;
             if fell <= 1e-9 * energy.max(1e-300) {
                 break;
             }
@@ -677,18 +683,17 @@ const ROUNDS_PER_VISIT: usize = 4;
 
 /// Step 2 for one block: alternate the best integer endpoints for the
 /// current indices with single-texel index changes, while the energy falls.
-/// True when it stopped at a fixed point (a round changed nothing), not at
-/// the round limit.
 fn improve_block(
     p: &Problem,
     layout: &Layout,
     states: &[State],
     s: usize,
     opts: &SeamAwareOptions,
-) -> (State, bool) {
+) -> Improved {
     let local = local_energy(p, layout, states, s, opts);
     let mut best = states[s];
     let mut ev = evaluate(&local, &best);
+    let start = ev.energy;
     let mut fixed = false;
     for _ in 0..ROUNDS_PER_VISIT {
         let mut changed = false;
@@ -711,7 +716,21 @@ fn improve_block(
             break;
         }
     }
-    (best, fixed)
+    Improved {
+        state: best,
+        fixed,
+        fell: start - ev.energy,
+    }
+}
+
+/// What [`improve_block`] found for a block.
+struct Improved {
+    state: State,
+    /// It stopped at a fixed point (a round changed nothing), not at the
+    /// round limit.
+    fixed: bool,
+    /// How much its local energy, summed over the decoders, fell.
+    fell: f64,
 }
 
 /// Moves slot `k` to palette entry `i` if that lowers the energy summed over
