@@ -5,6 +5,7 @@ use super::alpha::{self, AlphaMetrics, AlphaPlan};
 use super::{DecoderMetrics, Metrics};
 use crate::model::AlphaUse;
 use crate::seam::charts::{ChartFidelity, Charts};
+use crate::seam::metric::{squared_error, Sse};
 use crate::seam::{psnr, SeamMetric};
 
 /// The metric over every seam and over the closed ones, and the fidelity
@@ -33,9 +34,15 @@ impl Measure<'_> {
     }
 
     /// An encoding's figures under one decoder, from its decoding: the
-    /// seam terms and the two PSNRs side by side.
-    pub(super) fn decoder(&self, data: &[f32], input: &[f32], erased: &[f32]) -> DecoderMetrics {
-        let ((seam_rms, seam_rms_closed), (psnr_input, encoding_psnr)) = rayon::join(
+    /// seam terms and the two PSNRs side by side; with the squared errors
+    /// the PSNRs come from (against the input, against the erased texture).
+    pub(super) fn decoder(
+        &self,
+        data: &[f32],
+        input: &[f32],
+        erased: &[f32],
+    ) -> (DecoderMetrics, [Sse; 2]) {
+        let ((seam_rms, seam_rms_closed), (against_input, against_erased)) = rayon::join(
             || {
                 (
                     self.all.seam_rms(data, 3, self.compared),
@@ -44,17 +51,18 @@ impl Measure<'_> {
             },
             || {
                 (
-                    psnr(data, input, 3, self.compared, self.inside),
-                    psnr(data, erased, 3, self.compared, self.inside),
+                    squared_error(data, input, 3, self.compared, self.inside),
+                    squared_error(data, erased, 3, self.compared, self.inside),
                 )
             },
         );
-        DecoderMetrics {
+        let figures = DecoderMetrics {
             seam_rms,
             seam_rms_closed,
-            psnr: psnr_input,
-            encoding_psnr,
-        }
+            psnr: against_input.psnr(),
+            encoding_psnr: against_erased.psnr(),
+        };
+        (figures, [against_input, against_erased])
     }
 
     /// Alpha figures of `alpha` (one value per texel) against `input`'s

@@ -10,6 +10,7 @@
 
 pub mod alpha;
 mod bc7_level;
+mod figures;
 mod file;
 pub mod job;
 mod level;

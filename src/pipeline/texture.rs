@@ -14,6 +14,7 @@ use serde::Serialize;
 
 use super::alpha::{self, AlphaFormat, AlphaPlan, AlphaReport};
 use super::bc7_level::{self, Bc7Level};
+use super::figures::{Figures, Measured};
 use super::file::{regular_file, texture_file, Shipped};
 use super::level::{
     encode_level, encode_regular, encode_seam_aware, erase_level, rgb, EncodedLevel, ErasedLevel,
@@ -28,8 +29,7 @@ use super::{
 };
 use crate::bc1::alpha::decode_alpha_image;
 use crate::bc1::dds::MipLevel;
-use crate::bc1::{self, Block, Decoder};
-use crate::bc7;
+use crate::bc1::{self, Decoder};
 use crate::mips;
 use crate::model::{Texture, TextureBinding};
 use crate::picture::{job_versions, seams_png, SeamPicture};
@@ -248,7 +248,12 @@ pub(super) fn finish_texture(
         let t = Instant::now();
         let level = match first {
             Level0::Bc1 { enc, regular, .. } => {
-                let shipped = figures.of(&enc.shipped, enc.clear.as_deref())?;
+                let shipped = figures.of_changed(
+                    &enc.regular,
+                    &regular,
+                    &enc.shipped,
+                    enc.clear.as_deref(),
+                )?;
                 report.bc1 = Some(regular.metrics);
                 if opts.seam_aware {
                     report.bc1_seam_aware = Some(shipped.metrics);
@@ -602,83 +607,6 @@ fn encode_mip(
 /// The key of a BC7 encoding's alpha figures: one decoding, exact on
 /// every GPU, where BC1's alpha has one per decoder.
 const BC7_DECODING: &str = "exact";
-
-/// Level 0's encodings decoded and measured.
-struct Figures<'a> {
-    name: &'a str,
-    tex: &'a Texture,
-    measure: &'a Measure<'a>,
-    input_rgb: &'a [f32],
-    erased_rgb: &'a [f32],
-}
-
-/// One encoding's figures, and its ideal decoding (for the pictures).
-struct Measured {
-    metrics: Metrics,
-    ideal: Vec<f32>,
-    /// A BC7 encoding's decoded alpha (empty for BC1).
-    alpha: Vec<f32>,
-}
-
-impl Figures<'_> {
-    /// Under a texel of a one-bit-alpha DDS encoded transparent (`clear`)
-    /// no colour is shown: the colour figures take the erased texture's there.
-    fn decode(
-        &self,
-        blocks: &[Block],
-        clear: Option<&[bool]>,
-        d: Decoder,
-    ) -> Result<Vec<f32>, PipelineError> {
-        let mut rgb = bc1::decode_image_with(blocks, self.tex.width, self.tex.height, d)
-            .map_err(|e| PipelineError::encode(self.name, e))?;
-        if let Some(clear) = clear {
-            for (t, _) in clear.iter().enumerate().filter(|(_, c)| **c) {
-                rgb[t * 3..t * 3 + 3].copy_from_slice(&self.erased_rgb[t * 3..t * 3 + 3]);
-            }
-        }
-        Ok(rgb)
-    }
-
-    /// The figures of an encoding of level 0. One decoding at a time is
-    /// held besides the ideal one: at 8192² each is 768 MiB.
-    fn of(&self, blocks: &[Block], clear: Option<&[bool]>) -> Result<Measured, PipelineError> {
-        let ideal = self.decode(blocks, clear, Decoder::Ideal)?;
-        let (mut metrics, ideal_figures) = rayon::join(
-            || self.measure.against(&ideal, 3, self.input_rgb),
-            || {
-                self.measure
-                    .decoder(&ideal, self.input_rgb, self.erased_rgb)
-            },
-        );
-        let mut per = std::collections::BTreeMap::new();
-        for d in Decoder::ALL {
-            let figures = if d == Decoder::Ideal {
-                ideal_figures
-            } else {
-                let data = self.decode(blocks, clear, d)?;
-                self.measure.decoder(&data, self.input_rgb, self.erased_rgb)
-            };
-            per.insert(d.name(), figures);
-        }
-        metrics.decoders = Some(per);
-        Ok(Measured {
-            metrics,
-            ideal,
-            alpha: Vec::new(),
-        })
-    }
-
-    /// The figures of a BC7 encoding of level 0: one decoding, exact.
-    fn of_bc7(&self, blocks: &[bc7::Block]) -> Result<Measured, PipelineError> {
-        let (rgb, alpha) = bc7_level::decode(self.name, blocks, self.tex.width, self.tex.height)?;
-        let metrics = self.measure.against(&rgb, 3, self.input_rgb);
-        Ok(Measured {
-            metrics,
-            ideal: rgb,
-            alpha,
-        })
-    }
-}
 
 fn seam_summary(level: &ErasedLevel, opts: &ProcessOptions) -> SeamSummary {
     let total = level.seams.total_length();

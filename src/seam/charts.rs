@@ -189,6 +189,18 @@ impl Charts {
         channels: usize,
         compared: usize,
     ) -> Vec<Option<f64>> {
+        self.squared_errors(image, reference, channels, compared)
+            .psnr()
+    }
+
+    /// What [`Charts::psnr_per_chart`] is made of.
+    pub fn squared_errors(
+        &self,
+        image: &[f32],
+        reference: &[f32],
+        channels: usize,
+        compared: usize,
+    ) -> ChartSse {
         let parts = in_chunks(self.of_texel.len(), TEXELS_PER_TASK, |range| {
             let mut sum = vec![0.0f64; self.count];
             let mut texels = vec![0usize; self.count];
@@ -206,20 +218,18 @@ impl Charts {
             }
             (sum, texels)
         });
-        let mut sum = vec![0.0f64; self.count];
-        let mut texels = vec![0usize; self.count];
+        let mut out = ChartSse {
+            sum: vec![0.0f64; self.count],
+            texels: vec![0usize; self.count],
+            compared,
+        };
         for (ps, pn) in parts {
             for c in 0..self.count {
-                sum[c] += ps[c];
-                texels[c] += pn[c];
+                out.sum[c] += ps[c];
+                out.texels[c] += pn[c];
             }
         }
-        sum.iter()
-            .zip(&texels)
-            .map(|(s, n)| {
-                (*n >= MIN_CHART_TEXELS).then(|| 10.0 * ((n * compared) as f64 / s).log10())
-            })
-            .collect()
+        out
     }
 
     /// How much each chart was changed, summed up, so that one repainted
@@ -231,11 +241,37 @@ impl Charts {
         channels: usize,
         compared: usize,
     ) -> ChartFidelity {
-        let judged: Vec<f64> = self
-            .psnr_per_chart(image, reference, channels, compared)
-            .into_iter()
-            .flatten()
-            .collect();
+        self.squared_errors(image, reference, channels, compared)
+            .fidelity()
+    }
+}
+
+/// Per chart, squared differences summed over its texels, and its texel
+/// count: kept so that the figures can be corrected where a few texels
+/// change.
+#[derive(Clone, Debug)]
+pub struct ChartSse {
+    pub sum: Vec<f64>,
+    pub texels: Vec<usize>,
+    /// Channels summed per texel.
+    pub compared: usize,
+}
+
+impl ChartSse {
+    /// As [`Charts::psnr_per_chart`].
+    pub fn psnr(&self) -> Vec<Option<f64>> {
+        self.sum
+            .iter()
+            .zip(&self.texels)
+            .map(|(s, n)| {
+                (*n >= MIN_CHART_TEXELS).then(|| 10.0 * ((n * self.compared) as f64 / s).log10())
+            })
+            .collect()
+    }
+
+    /// As [`Charts::fidelity`].
+    pub fn fidelity(&self) -> ChartFidelity {
+        let judged: Vec<f64> = self.psnr().into_iter().flatten().collect();
         let changed = judged.iter().copied().filter(|p| p.is_finite());
         ChartFidelity {
             charts: judged.len(),

@@ -34,12 +34,24 @@ impl SeamMetric {
 
     /// Dtotal summed over the first `compared` channels of interleaved `data`.
     pub fn dtotal(&self, data: &[f32], channels: usize, compared: usize) -> f64 {
+        self.dtotal_with(compared, |t, c| data[t * channels + c])
+    }
+
+    /// Dtotal of the image whose channel `c` at texel `t` is `value(t, c)`.
+    pub fn dtotal_with(&self, compared: usize, value: impl Fn(usize, usize) -> f32 + Sync) -> f64 {
         in_chunks(self.points.len(), POINTS_PER_TASK, |range| {
             self.points[range]
                 .iter()
                 .map(|q| {
                     (0..compared)
-                        .map(|c| q.weight * q.apply(data, channels, c).powi(2))
+                        .map(|c| {
+                            let v: f64 = q
+                                .taps
+                                .iter()
+                                .map(|&(t, w)| w * f64::from(value(t as usize, c)))
+                                .sum();
+                            q.weight * v.powi(2)
+                        })
                         .sum::<f64>()
                 })
                 .sum::<f64>()
@@ -51,10 +63,19 @@ impl SeamMetric {
     /// Length-weighted RMS difference across the seams, in 8-bit levels;
     /// `None` when there are no seams to measure.
     pub fn seam_rms(&self, data: &[f32], channels: usize, compared: usize) -> Option<f64> {
+        self.seam_rms_with(compared, |t, c| data[t * channels + c])
+    }
+
+    /// [`SeamMetric::seam_rms`] of the image `value(t, c)`.
+    pub fn seam_rms_with(
+        &self,
+        compared: usize,
+        value: impl Fn(usize, usize) -> f32 + Sync,
+    ) -> Option<f64> {
         if self.is_empty() {
             return None;
         }
-        let d = self.dtotal(data, channels, compared);
+        let d = self.dtotal_with(compared, value);
         Some(255.0 * (d.max(0.0) / compared as f64).sqrt())
     }
 }
@@ -76,6 +97,33 @@ pub fn psnr(
     compared: usize,
     mask: &[bool],
 ) -> Option<f64> {
+    squared_error(image, reference, channels, compared, mask).psnr()
+}
+
+/// Squared differences summed over some values of an image, and how many:
+/// what a PSNR is made of, kept so that it can be corrected where a few
+/// texels change.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Sse {
+    pub sum: f64,
+    pub values: usize,
+}
+
+impl Sse {
+    /// In dB (values in \[0, 1\]); `None` for no values or no difference.
+    pub fn psnr(self) -> Option<f64> {
+        (self.values > 0 && self.sum != 0.0).then(|| 10.0 * (self.values as f64 / self.sum).log10())
+    }
+}
+
+/// The [`Sse`] behind [`psnr`].
+pub fn squared_error(
+    image: &[f32],
+    reference: &[f32],
+    channels: usize,
+    compared: usize,
+    mask: &[bool],
+) -> Sse {
     let parts = in_chunks(mask.len(), TEXELS_PER_TASK, |range| {
         let mut sum = 0.0;
         let mut n = 0usize;
@@ -88,13 +136,10 @@ pub fn psnr(
         }
         (sum, n)
     });
-    let (sum, n) = parts
+    let (sum, values) = parts
         .into_iter()
         .fold((0.0, 0), |(s, n), (ps, pn)| (s + ps, n + pn));
-    if n == 0 || sum == 0.0 {
-        return None;
-    }
-    Some(10.0 * (n as f64 / sum).log10())
+    Sse { sum, values }
 }
 
 /// Texels per parallel task of the image-wide sums.
