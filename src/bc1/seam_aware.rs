@@ -645,16 +645,19 @@ fn local_energy(
 /// A block's decoded values under each targeted decoder, M·v, and the
 /// energy Σ v·(Mv − 2r) summed over the decoders.
 struct Evaluated {
-    v: Vec<[[f64; 16]; 3]>,
-    mv: Vec<[[f64; 16]; 3]>,
+    v: [[[f64; 16]; 3]; MAX_DECODERS],
+    mv: [[[f64; 16]; 3]; MAX_DECODERS],
     energy: f64,
 }
 
+/// The most decoders a target has: the searches' per-decoder values live
+/// in arrays of this size, not in vectors allocated per candidate.
+const MAX_DECODERS: usize = Decoder::ALL.len();
+
 fn evaluate(local: &Local, st: &State) -> Evaluated {
-    let n = local.slots.len();
     let mut out = Evaluated {
-        v: vec![[[0.0; 16]; 3]; n],
-        mv: vec![[[0.0; 16]; 3]; n],
+        v: [[[0.0; 16]; 3]; MAX_DECODERS],
+        mv: [[[0.0; 16]; 3]; MAX_DECODERS],
         energy: 0.0,
     };
     for (di, &d) in local.slots.iter().enumerate() {
@@ -737,7 +740,7 @@ struct Improved {
 /// the decoders; keeps `ev` up to date.
 fn try_index(local: &Local, st: &mut State, ev: &mut Evaluated, k: usize, i: u8) -> bool {
     let mut de = 0.0;
-    let mut deltas = vec![[0.0f64; 3]; local.slots.len()];
+    let mut deltas = [[0.0f64; 3]; MAX_DECODERS];
     for (di, &d) in local.slots.iter().enumerate() {
         for ch in 0..3 {
             let delta = st.pal[d][ch][i as usize] - ev.v[di][ch][k];
@@ -751,7 +754,7 @@ fn try_index(local: &Local, st: &mut State, ev: &mut Evaluated, k: usize, i: u8)
     }
     st.idx[k] = i;
     ev.energy += de;
-    for (di, delta) in deltas.iter().enumerate() {
+    for (di, delta) in deltas.iter().take(local.slots.len()).enumerate() {
         for ch in 0..3 {
             ev.v[di][ch][k] += delta[ch];
             for l in 0..16 {
