@@ -6,6 +6,10 @@
 //! * free: seam texels that are not inside (gutter texels whose only job is
 //!   to make the bilinear samples at the seams agree).
 
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use rayon::prelude::*;
+
 use super::grid::TexelGrid;
 use super::quadrature::{for_each_cell, Segment};
 use crate::model::{SeamSet, UvTriangle};
@@ -41,12 +45,14 @@ impl TexelClasses {
 }
 
 /// Marks every texel whose centre lies in or on a UV triangle, wrap-aware.
+/// The triangles are rasterised side by side: a texel is only ever set, so
+/// the mask does not depend on their order.
 pub fn inside_mask(grid: &TexelGrid, triangles: &[UvTriangle]) -> Vec<bool> {
-    let mut mask = vec![false; grid.len()];
-    for t in triangles {
-        for_each_texel_inside(grid, t, |i| mask[i as usize] = true);
-    }
-    mask
+    let mask: Vec<AtomicBool> = (0..grid.len()).map(|_| AtomicBool::new(false)).collect();
+    triangles.par_iter().for_each(|t| {
+        for_each_texel_inside(grid, t, |i| mask[i as usize].store(true, Ordering::Relaxed));
+    });
+    mask.into_iter().map(AtomicBool::into_inner).collect()
 }
 
 /// Calls `f` with the (wrapped) index of every texel whose centre lies in or
