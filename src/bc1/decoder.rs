@@ -70,9 +70,21 @@ impl Decoder {
         four_colour_palettes().unit[self.palette_at(ch, x0, x1)]
     }
 
+    /// [`Decoder::four_colour_palette_unit`] of decoder `Decoder::ALL[d]`,
+    /// for loops that hold the decoder's place rather than the decoder.
+    #[inline]
+    pub(crate) fn four_colour_palette_unit_at(d: usize, ch: usize, x0: u8, x1: u8) -> [f64; 4] {
+        four_colour_palettes().unit[Self::table_index(d, ch, x0, x1)]
+    }
+
     #[inline]
     fn palette_at(self, ch: usize, x0: u8, x1: u8) -> usize {
         let d = Decoder::ALL.iter().position(|&a| a == self).unwrap_or(0);
+        Self::table_index(d, ch, x0, x1)
+    }
+
+    #[inline]
+    fn table_index(d: usize, ch: usize, x0: u8, x1: u8) -> usize {
         ((d * 3 + ch) * SIDE + x0 as usize) * SIDE + x1 as usize
     }
 

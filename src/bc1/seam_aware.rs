@@ -789,6 +789,15 @@ fn best_endpoints(local: &Local, st: &State) -> Option<State> {
             }
         }
     }
+    // pᵀSp over S's upper triangle, the entries off the diagonal doubled
+    // (S is symmetric but for rounding): ten products a candidate, not 16.
+    let upper: [[f64; 4]; 4] = std::array::from_fn(|i| {
+        std::array::from_fn(|j| match j.cmp(&i) {
+            std::cmp::Ordering::Less => 0.0,
+            std::cmp::Ordering::Equal => sm[i][i],
+            std::cmp::Ordering::Greater => sm[i][j] + sm[j][i],
+        })
+    });
     let mut out = *st;
     for ch in 0..3 {
         // R per decoder: r summed by palette entry.
@@ -807,12 +816,13 @@ fn best_endpoints(local: &Local, st: &State) -> Option<State> {
         let cost = |q0: i32, q1: i32| {
             let mut c = 0.0;
             for (&d, r) in local.slots.iter().zip(&rs) {
-                let pal = channel_palette(Decoder::ALL[d], ch, q0, q1);
+                let p = Decoder::four_colour_palette_unit_at(d, ch, q0 as u8, q1 as u8);
                 for i in 0..4 {
-                    c -= 2.0 * pal[i] * r[i];
-                    for j in 0..4 {
-                        c += pal[i] * pal[j] * sm[i][j];
+                    let mut sp = upper[i][i] * p[i];
+                    for j in i + 1..4 {
+                        sp += upper[i][j] * p[j];
                     }
+                    c += p[i] * (sp - 2.0 * r[i]);
                 }
             }
             c
