@@ -7,7 +7,9 @@
 //! lose those blocks' regular terms and gain their new ones, and the seam
 //! terms are summed again from the blocks under the seams alone. Measured
 //! over the whole image instead, the figures of the second encoding took
-//! three decodings of the whole texture and a dozen passes over it.
+//! three decodings of the whole texture and a dozen passes over it. Under
+//! the GPU decoders even the first encoding is measured block by block, as
+//! each block is decoded, with no decoded image of its own.
 
 use std::collections::BTreeMap;
 
@@ -18,7 +20,10 @@ use crate::bc1::{self, Block, Decoder};
 use crate::bc7;
 use crate::model::Texture;
 use crate::seam::charts::ChartSse;
-use crate::seam::metric::Sse;
+use crate::seam::metric::{in_chunks, Sse};
+
+/// Block rows per parallel task of [`Figures::of_blocks`].
+const BLOCK_ROWS_PER_TASK: usize = 16;
 
 /// Level 0's encodings decoded and measured.
 pub(super) struct Figures<'a> {
@@ -68,8 +73,9 @@ impl Figures<'_> {
         Ok(rgb)
     }
 
-    /// The figures of an encoding of level 0. One decoding at a time is
-    /// held besides the ideal one: at 8192² each is 768 MiB.
+    /// The figures of an encoding of level 0. Only the ideal decoding is
+    /// made whole (the pictures show it); the others are measured block by
+    /// block ([`Figures::of_blocks`]): at 8192² each decoding is 768 MiB.
     pub(super) fn of(
         &self,
         blocks: &[Block],
@@ -84,15 +90,18 @@ impl Figures<'_> {
             },
             || m.decoder(&ideal, self.input_rgb, self.erased_rgb),
         );
-        let mut per = Vec::with_capacity(Decoder::ALL.len());
-        for d in Decoder::ALL {
-            per.push(if d == Decoder::Ideal {
-                ideal_figures
-            } else {
-                let data = self.decode(blocks, clear, d)?;
-                m.decoder(&data, self.input_rgb, self.erased_rgb)
-            });
-        }
+        let (w, h) = (self.tex.width, self.tex.height);
+        let tapped = TappedBlocks::new(m, blocks, bc1::block_dims(w, h).0, w);
+        let per: Vec<(DecoderMetrics, [Sse; 2])> = Decoder::ALL
+            .into_iter()
+            .map(|d| {
+                if d == Decoder::Ideal {
+                    ideal_figures
+                } else {
+                    self.of_blocks(blocks, clear, d, &tapped)
+                }
+            })
+            .collect();
         let sums = Sums {
             input: std::array::from_fn(|d| per[d].1[0]),
             erased: std::array::from_fn(|d| per[d].1[1]),
@@ -105,6 +114,70 @@ impl Figures<'_> {
             alpha: Vec::new(),
             sums: Some(sums),
         })
+    }
+
+    /// An encoding's figures under decoder `d`, decoded block by block
+    /// rather than into an image of its own: the squared errors summed as
+    /// each block is decoded, the seam terms from the blocks under the
+    /// seams.
+    fn of_blocks(
+        &self,
+        blocks: &[Block],
+        clear: Option<&[bool]>,
+        d: Decoder,
+        tapped: &TappedBlocks<'_>,
+    ) -> (DecoderMetrics, [Sse; 2]) {
+        let m = self.measure;
+        let (w, h) = (self.tex.width, self.tex.height);
+        let (bw, bh) = bc1::block_dims(w, h);
+        let shown = |t: usize| clear.is_none_or(|c| !c[t]);
+        let parts = in_chunks(bh, BLOCK_ROWS_PER_TASK, |rows| {
+            let (mut input, mut erased) = (Sse::default(), Sse::default());
+            let first = rows.start * bw;
+            for (b, block) in (first..).zip(&blocks[first..rows.end * bw]) {
+                let decoded = block.decode_with(d);
+                for (k, texel) in decoded.iter().enumerate() {
+                    let Some(t) = bc1::block_texel((w, h), bw, b, k) else {
+                        continue;
+                    };
+                    if !m.inside[t] {
+                        continue;
+                    }
+                    for (c, &decoded) in texel.iter().enumerate().take(m.compared) {
+                        let v = if shown(t) {
+                            f64::from(decoded)
+                        } else {
+                            f64::from(self.erased_rgb[t * 3 + c])
+                        };
+                        input.sum += (v - f64::from(self.input_rgb[t * 3 + c])).powi(2);
+                        erased.sum += (v - f64::from(self.erased_rgb[t * 3 + c])).powi(2);
+                    }
+                    input.values += m.compared;
+                    erased.values += m.compared;
+                }
+            }
+            (input, erased)
+        });
+        let (mut input, mut erased) = (Sse::default(), Sse::default());
+        for (i, e) in parts {
+            (input.sum, input.values) = (input.sum + i.sum, input.values + i.values);
+            (erased.sum, erased.values) = (erased.sum + e.sum, erased.values + e.values);
+        }
+        let decoded = tapped.decode(d);
+        let value = |t: usize, c: usize| {
+            if shown(t) {
+                decoded[tapped.slot(t)][(t / w) % 4 * 4 + t % 4][c]
+            } else {
+                self.erased_rgb[t * 3 + c]
+            }
+        };
+        let figures = DecoderMetrics {
+            seam_rms: m.all.seam_rms_with(m.compared, value),
+            seam_rms_closed: m.closed.seam_rms_with(m.compared, value),
+            psnr: input.psnr(),
+            encoding_psnr: erased.psnr(),
+        };
+        (figures, [input, erased])
     }
 
     /// The figures of `blocks`, an encoding that differs from `regular`'s
