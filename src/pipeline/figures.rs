@@ -163,21 +163,37 @@ impl Figures<'_> {
             (input.sum, input.values) = (input.sum + i.sum, input.values + i.values);
             (erased.sum, erased.values) = (erased.sum + e.sum, erased.values + e.values);
         }
-        let decoded = tapped.decode(d);
-        let value = |t: usize, c: usize| {
-            if shown(t) {
-                decoded[tapped.slot(t)][(t / w) % 4 * 4 + t % 4][c]
-            } else {
-                self.erased_rgb[t * 3 + c]
-            }
-        };
+        let (seam_rms, seam_rms_closed) = self.seam_terms(tapped, clear, d);
         let figures = DecoderMetrics {
-            seam_rms: m.all.seam_rms_with(m.compared, value),
-            seam_rms_closed: m.closed.seam_rms_with(m.compared, value),
+            seam_rms,
+            seam_rms_closed,
             psnr: input.psnr(),
             encoding_psnr: erased.psnr(),
         };
         (figures, [input, erased])
+    }
+
+    /// The seam metric over every seam and over the closed ones, of the
+    /// encoding `tapped` reads, under decoder `d`.
+    fn seam_terms(
+        &self,
+        tapped: &TappedBlocks<'_>,
+        clear: Option<&[bool]>,
+        d: Decoder,
+    ) -> (Option<f64>, Option<f64>) {
+        let m = self.measure;
+        let decoded = tapped.decode(d);
+        let value = |t: usize, c: usize| {
+            if clear.is_none_or(|c| !c[t]) {
+                decoded[tapped.slot(t)][tapped.texel_in_block(t)][c]
+            } else {
+                self.erased_rgb[t * 3 + c]
+            }
+        };
+        (
+            m.all.seam_rms_with(m.compared, value),
+            m.closed.seam_rms_with(m.compared, value),
+        )
     }
 
     /// The figures of `blocks`, an encoding that differs from `regular`'s
@@ -246,18 +262,7 @@ impl Figures<'_> {
                         m.closed.seam_rms(&ideal, 3, m.compared),
                     )
                 } else {
-                    let decoded = tapped.decode(d);
-                    let value = |t: usize, c: usize| {
-                        if shown(t) {
-                            decoded[tapped.slot(t)][(t / w) % 4 * 4 + t % 4][c]
-                        } else {
-                            self.erased_rgb[t * 3 + c]
-                        }
-                    };
-                    (
-                        m.all.seam_rms_with(m.compared, value),
-                        m.closed.seam_rms_with(m.compared, value),
-                    )
+                    self.seam_terms(&tapped, clear, d)
                 };
                 DecoderMetrics {
                     seam_rms: all,
@@ -349,6 +354,11 @@ impl<'a> TappedBlocks<'a> {
             .iter()
             .map(|&b| self.blocks[b].decode_with(d))
             .collect()
+    }
+
+    /// Texel `t`'s place in its block.
+    fn texel_in_block(&self, t: usize) -> usize {
+        (t / self.width) % 4 * 4 + t % 4
     }
 
     /// The place of texel `t`'s block among the decodings.
