@@ -333,9 +333,9 @@ fn solve(
     prior: Option<&[bool]>,
 ) -> Result<Solved, PipelineError> {
     let selected = seams.select(closed);
-    let mut input = data.to_vec();
+    let mut input = crate::heap::copied(data);
     let padded = pad_left_seams(grid, &mut input, channels, seams, closed, charts);
-    let classes = TexelClasses::new(grid, &b.triangles, &selected);
+    let classes = TexelClasses::with_inside(grid, charts.inside(), &selected);
     let erased = match opts.method {
         Method::Erase => erase_within(
             grid,

@@ -7,6 +7,9 @@
 //! chart paints it, without the gutter between charts.
 
 use std::collections::HashMap;
+use std::sync::atomic::{AtomicU32, Ordering};
+
+use rayon::prelude::*;
 
 use super::grid::TexelGrid;
 use super::metric::{in_chunks, TEXELS_PER_TASK};
@@ -57,15 +60,36 @@ impl Charts {
                 *number.entry(root).or_insert(next)
             })
             .collect();
-        let mut of_texel = vec![Self::NONE; grid.len()];
-        for (t, &chart) in triangles.iter().zip(&of_triangle) {
-            for_each_texel_inside(grid, t, |i| of_texel[i as usize] = chart);
-        }
+        // Where triangles overlap the last one wins, that is the highest
+        // numbered: rasterised side by side, each texel keeps the largest
+        // number that reaches it, whatever order they land in.
+        let last: Vec<AtomicU32> = (0..grid.len())
+            .into_par_iter()
+            .map(|_| AtomicU32::new(0))
+            .collect();
+        triangles.par_iter().enumerate().for_each(|(t, tri)| {
+            for_each_texel_inside(grid, tri, |i| {
+                last[i as usize].fetch_max(t as u32 + 1, Ordering::Relaxed);
+            })
+        });
+        let of_texel = last
+            .into_par_iter()
+            .map(|t| match t.into_inner() {
+                0 => Self::NONE,
+                t => of_triangle[t as usize - 1],
+            })
+            .collect();
         Charts {
             of_triangle,
             of_texel,
             count: number.len(),
         }
+    }
+
+    /// Whether each texel's centre lies in a triangle (the inside texels of
+    /// [`TexelClasses`](super::texels::TexelClasses)).
+    pub fn inside(&self) -> Vec<bool> {
+        self.of_texel.par_iter().map(|&c| c != Self::NONE).collect()
     }
 
     /// The chart of texel `i`, if any triangle covers it.

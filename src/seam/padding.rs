@@ -61,10 +61,11 @@ pub fn pad_left_seams(
             });
         }
     }
-    let source = data.to_vec();
+    // Claims are gutter texels and means read chart texels only, so filling
+    // in place reads the input as painted (no copy of the image needed).
     let mut filled = 0;
     for (&i, c) in &claims {
-        if let Some(value) = chart_mean(grid, &source, channels, charts, c) {
+        if let Some(value) = chart_mean(grid, data, channels, charts, c) {
             data[i as usize * channels..][..channels].copy_from_slice(&value[..channels]);
             filled += 1;
         }

@@ -23,7 +23,13 @@ pub struct TexelClasses {
 
 impl TexelClasses {
     pub fn new(grid: &TexelGrid, triangles: &[UvTriangle], seams: &SeamSet) -> Self {
-        let inside = inside_mask(grid, triangles);
+        Self::with_inside(grid, inside_mask(grid, triangles), seams)
+    }
+
+    /// The classes with the inside texels already known (a level's
+    /// [`Charts`](super::charts::Charts) mark the same texels: every solve
+    /// of the level shares them instead of rasterising its triangles again).
+    pub fn with_inside(grid: &TexelGrid, inside: Vec<bool>, seams: &SeamSet) -> Self {
         let mut seam = vec![false; grid.len()];
         let mut mark = |seg: Segment| {
             for_each_cell(seg, |c| {
@@ -39,7 +45,11 @@ impl TexelClasses {
         for s in &seams.silhouettes {
             mark(Segment::from_uv(grid, s.uv));
         }
-        let free = seam.iter().zip(&inside).map(|(&s, &i)| s && !i).collect();
+        let free = seam
+            .par_iter()
+            .zip(&inside)
+            .map(|(&s, &i)| s && !i)
+            .collect();
         TexelClasses { inside, seam, free }
     }
 }
