@@ -2,6 +2,7 @@
 //! judged and erased ([`erase_level`]), then encoded regular and seam-aware
 //! ([`encode_level`]).
 
+use std::borrow::Cow;
 use std::time::Instant;
 
 use rayon::prelude::*;
@@ -400,19 +401,26 @@ fn quantized(data: &[f32], max_value: u32) -> Vec<f32> {
         .collect()
 }
 
-/// RGB view of a texture: grey is replicated, alpha dropped (BC1 is opaque).
-pub(super) fn rgb(t: &Texture) -> Vec<f32> {
+/// RGB view of a texture: grey is replicated, alpha dropped (BC1 is
+/// opaque). An RGB texture is its own view: no copy of a 2048² image
+/// (48 MB, and its page faults) on the way to every encoding and figure.
+pub(super) fn rgb(t: &Texture) -> Cow<'_, [f32]> {
     let ch = t.channels;
-    t.data
-        .chunks(ch)
-        .flat_map(|c| {
-            if ch < 3 {
-                [c[0]; 3]
-            } else {
-                [c[0], c[1], c[2]]
-            }
-        })
-        .collect()
+    if ch == 3 {
+        return Cow::Borrowed(&t.data);
+    }
+    Cow::Owned(
+        t.data
+            .par_chunks(ch)
+            .flat_map_iter(|c| {
+                if ch < 3 {
+                    [c[0]; 3]
+                } else {
+                    [c[0], c[1], c[2]]
+                }
+            })
+            .collect(),
+    )
 }
 
 /// A level encoded: the blocks the DDS holds, and the regular encoding's.
@@ -441,14 +449,14 @@ pub(super) fn encode_level(
 }
 
 /// A level's regular encoding, and what the seam-aware search starts from.
-pub(super) struct Regular {
+pub(super) struct Regular<'a> {
     pub(super) blocks: Vec<Block>,
     /// BC3's alpha blocks (empty for BC1).
     pub(super) alpha: Vec<AlphaBlock>,
     /// For BC1 with one-bit alpha: the texels encoded transparent.
     pub(super) clear: Option<Vec<bool>>,
     /// The level's RGB, and its alpha when the DDS keeps alpha.
-    rgb: Vec<f32>,
+    rgb: Cow<'a, [f32]>,
     alpha_values: Option<Vec<f32>>,
     pub(super) ms: u64,
 }
@@ -474,12 +482,12 @@ impl EncodedLevel {
     }
 }
 
-pub(super) fn encode_regular(
+pub(super) fn encode_regular<'a>(
     b: &TextureBinding,
-    level: &ErasedLevel,
+    level: &'a ErasedLevel,
     opts: &ProcessOptions,
     plan: Option<&AlphaPlan>,
-) -> Result<Regular, PipelineError> {
+) -> Result<Regular<'a>, PipelineError> {
     let (w, h) = (level.grid.width, level.grid.height);
     let t = Instant::now();
     let rgb = rgb(&level.stored);

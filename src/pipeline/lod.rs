@@ -321,7 +321,7 @@ fn measured_textures<'a>(report: &'a Report, files: &[OutputFile]) -> Vec<Measur
                 let l = d.levels.into_iter().next()?;
                 decode_image(&l.blocks, l.width as usize, l.height as usize).ok()
             });
-        let erased_rgb = report.options.pictures.then(|| rgb(&erased));
+        let erased_rgb = report.options.pictures.then(|| rgb(&erased).into_owned());
         out.push(Measured {
             image: t.image,
             name: &t.name,
