@@ -200,8 +200,8 @@ pub(super) fn finish_texture(
         || Beside::run(b, level0, &measure, alphas.as_ref(), opts, plan.as_ref()),
     );
     let (first, side) = (first?, side?);
-    let (encode_ms, seam_aware_ms) = first.as_ref().map_or((0, 0), Level0::timings);
-    let beside_wait = ms_since(t).saturating_sub(encode_ms + seam_aware_ms);
+    let (encode_ms, seam_aware_ms, figured_ms) = first.as_ref().map_or((0, 0, 0), Level0::timings);
+    let beside_wait = ms_since(t).saturating_sub(encode_ms + seam_aware_ms + figured_ms);
 
     let erased_name = format!("{}.erased.png", b.name);
     let mut files = vec![OutputFile {
@@ -253,13 +253,12 @@ pub(super) fn finish_texture(
     if let Some(first) = first {
         let t = Instant::now();
         let level = match first {
-            Level0::Bc1 { enc, regular, .. } => {
-                let shipped = figures.of_changed(
-                    &enc.regular,
-                    &regular,
-                    &enc.shipped,
-                    enc.clear.as_deref(),
-                )?;
+            Level0::Bc1 {
+                enc,
+                regular,
+                shipped,
+                ..
+            } => {
                 report.bc1 = Some(regular.metrics);
                 if opts.seam_aware {
                     report.bc1_seam_aware = Some(shipped.metrics);
@@ -297,8 +296,12 @@ pub(super) fn finish_texture(
                     alpha: enc.alpha_shipped,
                 })
             }
-            Level0::Bc7 { enc, regular, .. } => {
-                let shipped = figures.of_bc7(&enc.shipped)?;
+            Level0::Bc7 {
+                enc,
+                regular,
+                shipped,
+                ..
+            } => {
                 report.bc7 = Some(regular.metrics);
                 if opts.seam_aware {
                     report.bc7_seam_aware = Some(shipped.metrics);
@@ -323,7 +326,7 @@ pub(super) fn finish_texture(
                 }
             }
         };
-        report.timings_ms.metrics = ms_since(t);
+        report.timings_ms.metrics = figured_ms + ms_since(t);
         tracing::info!(
             encode_ms,
             seam_aware_ms,
@@ -410,37 +413,51 @@ pub(super) fn finish_texture(
     Ok((report, files))
 }
 
-/// Level 0 encoded, with the regular encoding's figures.
+/// Level 0 encoded, with both encodings' figures.
 enum Level0 {
     Bc1 {
         enc: EncodedLevel,
         regular: Measured,
+        shipped: Measured,
         /// The seam-aware search's time, with the regular figures beside it.
         searched_ms: u64,
+        /// The shipped encoding's figures' time.
+        figured_ms: u64,
     },
     Bc7 {
         enc: Bc7Level,
         regular: Measured,
+        shipped: Measured,
         searched_ms: u64,
+        figured_ms: u64,
     },
 }
 
 impl Level0 {
-    /// The regular encoding's and the seam-aware search's milliseconds.
-    fn timings(&self) -> (u64, u64) {
+    /// The regular encoding's, the seam-aware search's and the shipped
+    /// figures' milliseconds.
+    fn timings(&self) -> (u64, u64, u64) {
         match self {
             Level0::Bc1 {
-                enc, searched_ms, ..
-            } => (enc.encode_ms, *searched_ms),
+                enc,
+                searched_ms,
+                figured_ms,
+                ..
+            } => (enc.encode_ms, *searched_ms, *figured_ms),
             Level0::Bc7 {
-                enc, searched_ms, ..
-            } => (enc.encode_ms, *searched_ms),
+                enc,
+                searched_ms,
+                figured_ms,
+                ..
+            } => (enc.encode_ms, *searched_ms, *figured_ms),
         }
     }
 }
 
 /// Level 0's regular encoding, then its seam-aware search with the regular
-/// encoding's figures beside it (they need nothing of the search).
+/// encoding's figures beside it (they need nothing of the search), then the
+/// shipped encoding's figures: all on this side of the join, so that they
+/// run while the mip chain beside them still does.
 fn encode_level0(
     b: &TextureBinding,
     level0: &ErasedLevel,
@@ -456,14 +473,19 @@ fn encode_level0(
             || figures.of_bc7(&regular),
         );
         let ((shipped, seam_aware_ms), regular_figures) = (shipped?, regular_figures?);
+        let searched_ms = ms_since(t);
+        let t = Instant::now();
+        let shipped_figures = figures.of_bc7(&shipped)?;
         return Ok(Level0::Bc7 {
-            searched_ms: ms_since(t),
+            searched_ms,
+            figured_ms: ms_since(t),
             enc: Bc7Level {
                 shipped,
                 encode_ms,
                 seam_aware_ms,
             },
             regular: regular_figures,
+            shipped: shipped_figures,
         });
     }
     let regular = encode_regular(b, level0, opts, plan)?;
@@ -473,10 +495,21 @@ fn encode_level0(
         || figures.of(&regular.blocks, regular.clear.as_deref()),
     );
     let (shipped, regular_figures) = (shipped?, regular_figures?);
+    let searched_ms = ms_since(t);
+    let t = Instant::now();
+    let enc = EncodedLevel::new(regular, shipped);
+    let shipped_figures = figures.of_changed(
+        &enc.regular,
+        &regular_figures,
+        &enc.shipped,
+        enc.clear.as_deref(),
+    )?;
     Ok(Level0::Bc1 {
-        searched_ms: ms_since(t),
-        enc: EncodedLevel::new(regular, shipped),
+        searched_ms,
+        figured_ms: ms_since(t),
+        enc,
         regular: regular_figures,
+        shipped: shipped_figures,
     })
 }
 
