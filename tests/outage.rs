@@ -117,17 +117,25 @@ fn job(c: &Client, s: &Serve, id: &str) -> Option<Value> {
 
 /// Times one request; the status, `Retry-After`, body and time it took.
 fn timed(req: reqwest::blocking::RequestBuilder) -> (u16, Option<String>, Value, Duration) {
+    let (status, headers, body, took) = timed_with_headers(req);
+    let retry = headers
+        .get("retry-after")
+        .and_then(|v| v.to_str().ok())
+        .map(str::to_string);
+    (status, retry, body, took)
+}
+
+/// [`timed`], with every header of the answer.
+fn timed_with_headers(
+    req: reqwest::blocking::RequestBuilder,
+) -> (u16, reqwest::header::HeaderMap, Value, Duration) {
     let t = Instant::now();
     let r = req.send().expect("an answer");
     let took = t.elapsed();
     let status = r.status().as_u16();
-    let retry = r
-        .headers()
-        .get("retry-after")
-        .and_then(|v| v.to_str().ok())
-        .map(str::to_string);
+    let headers = r.headers().clone();
     let body = r.json().unwrap_or(Value::Null);
-    (status, retry, body, took)
+    (status, headers, body, took)
 }
 
 fn ride_out(pg: &Postgres, s3: &Seaweed, away: Away) {
@@ -167,14 +175,21 @@ fn ride_out(pg: &Postgres, s3: &Seaweed, away: Away) {
         Away::ObjectStore => "file store",
         Away::JobStore => "job store",
     };
-    let (status, retry, body, took) = timed(
+    let (status, headers, body, took) = timed_with_headers(
         c.post(s.url("/v1/jobs?name=late.glb"))
             .header("content-type", "model/gltf-binary")
             .body(variant(100)),
     );
     assert_eq!(status, 503, "{body}\n{}", s.log());
     assert_eq!(body["code"], "store_unavailable", "{body}");
-    assert!(retry.is_some(), "no Retry-After");
+    assert!(headers.contains_key("retry-after"), "no Retry-After");
+    // Its upload left unread, the connection closes after the answer: the
+    // answer says so, and the client's next request takes a new one.
+    assert_eq!(
+        headers.get("connection").and_then(|v| v.to_str().ok()),
+        Some("close"),
+        "{headers:?}"
+    );
     assert!(took < PROMPT, "submission answered in {took:?}");
     eprintln!("{tag}: submission answered {status} in {took:?}");
     let (status, _, body, took) = timed(c.get(s.url("/readyz")));

@@ -107,11 +107,31 @@ async fn store_gate(State(app): State<Shared>, req: Request, next: Next) -> Resp
             &[Dependency::Jobs]
         };
         if let Some(down) = app.health.down_among(needs) {
-            return ApiError::unavailable("store_unavailable", down.message(), STORE_RETRY_AFTER_S)
-                .into_response();
+            let mut resp =
+                ApiError::unavailable("store_unavailable", down.message(), STORE_RETRY_AFTER_S)
+                    .into_response();
+            // The body is left unread, and the server then drops the
+            // connection after this answer: said in the answer, a client
+            // does not send its next request down a connection about to
+            // close (it did, and got no answer, while still sending an upload).
+            if has_body(&req) {
+                resp.headers_mut()
+                    .insert(header::CONNECTION, HeaderValue::from_static("close"));
+            }
+            return resp;
         }
     }
     next.run(req).await
+}
+
+/// Whether a request announces a body (chunks, or a length above zero).
+fn has_body(req: &Request) -> bool {
+    let h = req.headers();
+    let length = h
+        .get(header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.trim().parse::<u64>().ok());
+    h.contains_key(header::TRANSFER_ENCODING) || length.is_some_and(|n| n > 0)
 }
 
 /// Request ids, one log line per request, and JSON bodies for the errors
