@@ -107,18 +107,8 @@ async fn store_gate(State(app): State<Shared>, req: Request, next: Next) -> Resp
             &[Dependency::Jobs]
         };
         if let Some(down) = app.health.down_among(needs) {
-            let mut resp =
-                ApiError::unavailable("store_unavailable", down.message(), STORE_RETRY_AFTER_S)
-                    .into_response();
-            // The body is left unread, and the server then drops the
-            // connection after this answer: said in the answer, a client
-            // does not send its next request down a connection about to
-            // close (it did, and got no answer, while still sending an upload).
-            if has_body(&req) {
-                resp.headers_mut()
-                    .insert(header::CONNECTION, HeaderValue::from_static("close"));
-            }
-            return resp;
+            return ApiError::unavailable("store_unavailable", down.message(), STORE_RETRY_AFTER_S)
+                .into_response();
         }
     }
     next.run(req).await
@@ -134,9 +124,18 @@ fn has_body(req: &Request) -> bool {
     h.contains_key(header::TRANSFER_ENCODING) || length.is_some_and(|n| n > 0)
 }
 
-/// Request ids, one log line per request, and JSON bodies for the errors
-/// the framework itself produces (unknown method, malformed path).
+/// Request ids, one log line per request, JSON bodies for the errors the
+/// framework itself produces (unknown method, malformed path), and
+/// `Connection: close` on errors to requests with a body.
+///
+/// Most errors answer before the body is read (a store away, a bad token or
+/// query, shutting down), and the server then drops the connection after
+/// the answer. Said in the answer, a client does not send its next request
+/// down a connection about to close (it did, and got no answer, while still
+/// sending an upload). Where the body was read after all, the client opens
+/// one connection more.
 async fn request_context(State(app): State<Shared>, req: Request, next: Next) -> Response {
+    let uploads = has_body(&req);
     let request_id = req
         .headers()
         .get("x-request-id")
@@ -159,8 +158,13 @@ async fn request_context(State(app): State<Shared>, req: Request, next: Next) ->
     let started = Instant::now();
     let mut resp = next.run(req).instrument(span.clone()).await;
     let status = resp.status();
-    if (status.is_client_error() || status.is_server_error()) && !is_json(resp.headers()) {
+    let failed = status.is_client_error() || status.is_server_error();
+    if failed && !is_json(resp.headers()) {
         resp = json_error(resp).await;
+    }
+    if failed && uploads {
+        resp.headers_mut()
+            .insert(header::CONNECTION, HeaderValue::from_static("close"));
     }
     if let Ok(v) = HeaderValue::from_str(&request_id) {
         resp.headers_mut().insert("x-request-id", v);
