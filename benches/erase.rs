@@ -159,6 +159,10 @@ fn budget_table() {
     println!("(|peak − est| ≤ 20% of est): {outside} runs outside.");
 }
 
+// As the binary does.
+#[global_allocator]
+static ALLOC: seamstress::heap::HugePageAlloc = seamstress::heap::HugePageAlloc;
+
 fn main() {
     // As the binary does.
     seamstress::heap::retain_freed_memory();

@@ -31,10 +31,13 @@ const POINTS_PER_PIECE: u64 = 6;
 // --bench erase -- budget` prints both, with the quantities below): blub,
 // Fox, CesiumMan, Duck, BoxTextured, cube_gradient_1024 and _128,
 // WaterBottle, TextureTransformTest, 12 runs each on a two-core machine.
-// A job gives its free pages back between stages (`heap`), so its peak
-// follows the memory in use, and one model's peak varies by 1–4% from run
-// to run (Duck and BoxTextured by 10%: blocks freed and made again within
-// one stage, by threads in whatever order they run).
+// A job keeps the pages it frees (`heap`), so its peak lies above the
+// memory in use by the holes freed blocks leave, and one model's peak
+// varies by up to 8% from run to run (blocks freed and made again by
+// threads in whatever order they run). The estimate lies above the peak
+// of every model whose peak is its erase (blub 1.22, Fox 1.19, WaterBottle
+// 1.32 of the highest of three runs) and below those of the smallest ones,
+// where the process itself weighs most (Duck 0.84, cube_gradient_128 0.77).
 //
 // The peak falls in one of two stages of the texture worked on, and the
 // estimate takes the larger:

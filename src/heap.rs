@@ -21,22 +21,93 @@
 //! of Fox, 2 with one arena; erase 1257 → 1094 ms, median of six interleaved
 //! runs). A first touch costs 0.4–1 µs a page on this kind of virtual machine.
 //!
-//! Kept mapped, though, freed blocks become holes that a later block of
-//! another size may not fit, and the process's peak then depends on where
-//! the threads' interleaving happened to put each block: blub's job peaked
-//! anywhere in 599–652 MiB with 445 MiB in use at most. So a job hands its
-//! free pages back ([`release_freed_memory`]) where one working set ends
-//! and a differently shaped one begins: after each band's system is solved
-//! and after the erase (the encoding's pieces, decodings among them, reuse
-//! each other's blocks, and a texture's erase runs beside the encoding of
-//! the one before it, so there is no later point where one set ends). The peak
-//! then follows the memory in use, which is what the budget can estimate:
-//! over 12 runs each, blub 447–451 MiB, Fox 595–601 from 594–666,
-//! WaterBottle 639–666 from 686–842, cube_gradient_1024 121–124 from
-//! 143–162. The pages touched again are the price:
-//! on WaterBottle (four 2048² textures) 535 000 faults instead of 175 000,
-//! about 0.5 s more system time over 4.5 s of CPU; on Fox 0.16 s over 3.5.
-//! A worker gives back what is left when it runs out of jobs.
+//! Kept mapped, freed blocks become holes that a later block of another
+//! size may not fit, so a job's peak lies above the memory it has in use at
+//! any one time, by as much as the threads' interleaving happens to leave:
+//! over four runs each, Fox 641–653 MiB, WaterBottle 689–746,
+//! blub_atlas_black 1044–1115. Handing the free pages back after each band's
+//! solve and after the erase kept the peak at the memory in use (Fox
+//! 596–603, WaterBottle 646–666), but every page touched again then cost a
+//! fault, and on huge pages a whole 2 MiB page zeroed again: 280 000 faults
+//! on Fox instead of 38 000, and 10% of the job's wall time (Fox 3.89 →
+//! 3.37 s, WaterBottle 6.66 → 5.91 s, blub_atlas_dilated with mips 10.66
+//! → 9.73 s, medians of interleaved runs). A farm feels the time, and the
+//! budget's estimate (`cargo bench --bench erase -- budget`) still lies
+//! above the peak of every erase-bound model. So a job keeps its pages, and
+//! a worker gives back what is left when it runs out of jobs.
+
+/// The process's allocator: the system's, with the pages of large blocks
+/// backed by transparent huge pages where the kernel offers them on request
+/// (`madvise` mode, as here).
+///
+/// A first touch of a 4 KiB page costs a fault of about a microsecond on
+/// this kind of virtual machine, most of it bookkeeping rather than zeroing:
+/// Fox's job took 280 000 of them, 11% of its CPU time. A 2 MiB page costs
+/// one fault for 512 of them, and the solver's vectors, walked again and
+/// again, then miss the TLB far less.
+pub struct HugePageAlloc;
+
+/// A transparent huge page on x86-64 and most arm64 kernels.
+const HUGE_PAGE: usize = 2 << 20;
+
+/// Blocks from this size on are advised: only the huge pages wholly inside
+/// a block are, so a block never shares one with its neighbours.
+const HUGE_BLOCK: usize = HUGE_PAGE;
+
+/// Asks for huge pages under the whole huge pages inside `[p, p + size)`.
+fn advise_huge(p: *mut u8, size: usize) {
+    #[cfg(target_os = "linux")]
+    {
+        let start = (p as usize).next_multiple_of(HUGE_PAGE);
+        let end = (p as usize).saturating_add(size) / HUGE_PAGE * HUGE_PAGE;
+        if end > start {
+            // SAFETY: the range lies inside a block the allocator just
+            // handed out; the advice changes only how its pages are backed.
+            // A kernel without huge pages refuses it, which changes nothing.
+            unsafe {
+                libc::madvise(start as *mut libc::c_void, end - start, libc::MADV_HUGEPAGE);
+            }
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = (p, size);
+}
+
+// SAFETY: every call is passed to `System` unchanged; the advice touches no
+// byte of a block.
+unsafe impl std::alloc::GlobalAlloc for HugePageAlloc {
+    unsafe fn alloc(&self, layout: std::alloc::Layout) -> *mut u8 {
+        // SAFETY: forwarded with the caller's guarantees.
+        let p = unsafe { std::alloc::System.alloc(layout) };
+        if layout.size() >= HUGE_BLOCK && !p.is_null() {
+            advise_huge(p, layout.size());
+        }
+        p
+    }
+
+    unsafe fn alloc_zeroed(&self, layout: std::alloc::Layout) -> *mut u8 {
+        // SAFETY: forwarded with the caller's guarantees.
+        let p = unsafe { std::alloc::System.alloc_zeroed(layout) };
+        if layout.size() >= HUGE_BLOCK && !p.is_null() {
+            advise_huge(p, layout.size());
+        }
+        p
+    }
+
+    unsafe fn dealloc(&self, p: *mut u8, layout: std::alloc::Layout) {
+        // SAFETY: forwarded with the caller's guarantees.
+        unsafe { std::alloc::System.dealloc(p, layout) }
+    }
+
+    unsafe fn realloc(&self, p: *mut u8, layout: std::alloc::Layout, size: usize) -> *mut u8 {
+        // SAFETY: forwarded with the caller's guarantees.
+        let q = unsafe { std::alloc::System.realloc(p, layout, size) };
+        if size >= HUGE_BLOCK && !q.is_null() {
+            advise_huge(q, size);
+        }
+        q
+    }
+}
 
 /// Serves large allocations from one heap for all threads and keeps freed
 /// memory mapped.

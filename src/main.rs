@@ -307,6 +307,9 @@ struct SubmitArgs {
     token: Option<String>,
 }
 
+#[global_allocator]
+static ALLOC: seamstress::heap::HugePageAlloc = seamstress::heap::HugePageAlloc;
+
 fn main() -> ExitCode {
     seamstress::heap::retain_freed_memory();
     let cli = Cli::parse();

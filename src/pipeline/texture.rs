@@ -124,10 +124,6 @@ pub(super) fn erase_texture<'a>(
         plan.is_some_and(|p| p.erase),
         Rung::Base,
     )?;
-    // The solver's working set is freed now and the encoder's has another
-    // shape: given back rather than left as holes, the process's peak
-    // follows the memory in use (see `heap`).
-    crate::heap::release_freed_memory();
     tracing::info!(
         seam_edges = level0.seams.seams.len(),
         closed = level0.verdicts.closed_count(),

@@ -676,10 +676,6 @@ fn solve_band(
             x
         }
     };
-    // The system is freed; the output image, the band's growth and the next
-    // band's system are shaped otherwise and would not fit its holes whole,
-    // leaving the peak to where they happen to land (see `heap`).
-    crate::heap::release_freed_memory();
     let mut out = crate::heap::copied(held);
     out.par_chunks_mut(ch)
         .zip(unknown.par_iter())
