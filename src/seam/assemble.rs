@@ -9,8 +9,6 @@
 //! texels (all the points of one cell pair, for both the difference and the
 //! C1 term) have been summed into one dense 8×8 block.
 
-use std::collections::HashMap;
-
 use rayon::prelude::*;
 
 use super::grid::TexelGrid;
@@ -317,7 +315,8 @@ impl SeamBlocks {
     pub fn new(points: &[QuadPoint], movable: &[bool], input: &[f32], ch: usize) -> Self {
         let mut blocks: Vec<Block> = Vec::new();
         let mut held_terms = Vec::new();
-        let mut index: HashMap<[u32; 8], usize> = HashMap::new();
+        // Keyed by eight texel numbers a hash needs no defence for.
+        let mut index: rustc_hash::FxHashMap<[u32; 8], usize> = Default::default();
         for q in points {
             let mut free = [(u32::MAX, 0.0f64); 8];
             let mut nfree = 0;
@@ -383,6 +382,9 @@ impl SeamBlocks {
     }
 }
 
+/// Rows per parallel task of [`sorted_entries`].
+const MERGE_ROWS: usize = 4096;
+
 /// The blocks' texels (increasing) and their entries over those texels'
 /// indices, sorted by row and column with duplicates summed.
 fn sorted_entries(blocks: &[Block]) -> (Vec<u32>, Vec<(u32, u32, f64)>) {
@@ -403,42 +405,55 @@ fn sorted_entries(blocks: &[Block]) -> (Vec<u32>, Vec<(u32, u32, f64)>) {
             key
         })
         .collect();
-    // A counting sort by row, stable (each short row is then sorted by
-    // column, stably), so equal entries are summed in the order the points
-    // came.
+    // Each row lists the blocks it lies in, in block order (a counting
+    // sort of (block, place) pairs by row): a row's entries are then its
+    // blocks' rows, gathered, sorted by column (stably) and summed in the
+    // order the points came, with no list of every product in between, and
+    // rows apart from each other in parallel.
     let n = texels.len();
     let mut start = vec![0u32; n + 1];
     for (key, b) in keys.iter().zip(blocks) {
         for &u in &key[..b.len] {
-            start[u as usize + 1] += b.len as u32;
+            start[u as usize + 1] += 1;
         }
     }
     for i in 0..n {
         start[i + 1] += start[i];
     }
-    let mut by_row = vec![(0u32, 0.0f64); start[n] as usize];
+    let mut member = vec![(0u32, 0u8); start[n] as usize];
     let mut next = start.clone();
-    for (key, b) in keys.iter().zip(blocks) {
+    for (i, (key, b)) in keys.iter().zip(blocks).enumerate() {
         for (k, &u) in key[..b.len].iter().enumerate() {
-            let at = &mut next[u as usize];
-            for (l, &v) in key[..b.len].iter().enumerate() {
-                by_row[*at as usize] = (v, b.a[k][l]);
-                *at += 1;
-            }
+            member[next[u as usize] as usize] = (i as u32, k as u8);
+            next[u as usize] += 1;
         }
     }
-    drop((next, keys));
-    let mut merged: Vec<(u32, u32, f64)> = Vec::with_capacity(by_row.len() / 2);
-    for i in 0..n {
-        let row = &mut by_row[start[i] as usize..start[i + 1] as usize];
-        row.sort_by_key(|e| e.0);
-        for &(c, v) in row.iter() {
-            match merged.last_mut() {
-                Some(m) if m.0 == i as u32 && m.1 == c => m.2 += v,
-                _ => merged.push((i as u32, c, v)),
+    drop(next);
+    let merge_rows = |rows: std::ops::Range<usize>| {
+        let mut out = Vec::new();
+        let mut row: Vec<(u32, f64)> = Vec::new();
+        for i in rows {
+            row.clear();
+            for &(bi, k) in &member[start[i] as usize..start[i + 1] as usize] {
+                let (key, b) = (&keys[bi as usize], &blocks[bi as usize]);
+                let a = &b.a[k as usize];
+                row.extend(key[..b.len].iter().zip(a).map(|(&v, &x)| (v, x)));
+            }
+            row.sort_by_key(|e| e.0);
+            for &(c, v) in &row {
+                match out.last_mut() {
+                    Some((r, m, sum)) if *r == i as u32 && *m == c => *sum += v,
+                    _ => out.push((i as u32, c, v)),
+                }
             }
         }
-    }
+        out
+    };
+    let chunks: Vec<Vec<(u32, u32, f64)>> = (0..n.div_ceil(MERGE_ROWS))
+        .into_par_iter()
+        .map(|c| merge_rows(c * MERGE_ROWS..((c + 1) * MERGE_ROWS).min(n)))
+        .collect();
+    let merged = chunks.concat();
     (texels, merged)
 }
 
