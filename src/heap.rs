@@ -50,14 +50,12 @@ pub struct HugePageAlloc;
 /// A transparent huge page on x86-64 and most arm64 kernels.
 const HUGE_PAGE: usize = 2 << 20;
 
-/// Blocks from this size on are advised: only the huge pages wholly inside
-/// a block are, so a block never shares one with its neighbours.
-const HUGE_BLOCK: usize = HUGE_PAGE;
-
-/// Asks for huge pages under the whole huge pages inside `[p, p + size)`.
-fn advise_huge(p: *mut u8, size: usize) {
+/// `p`, a block of `size` bytes (or null), with huge pages asked for under
+/// the whole huge pages inside it: only those, so a block never shares one
+/// with its neighbours, and none for a block smaller than one.
+fn advise_huge(p: *mut u8, size: usize) -> *mut u8 {
     #[cfg(target_os = "linux")]
-    {
+    if size >= HUGE_PAGE && !p.is_null() {
         let start = (p as usize).next_multiple_of(HUGE_PAGE);
         let end = (p as usize).saturating_add(size) / HUGE_PAGE * HUGE_PAGE;
         if end > start {
@@ -70,7 +68,8 @@ fn advise_huge(p: *mut u8, size: usize) {
         }
     }
     #[cfg(not(target_os = "linux"))]
-    let _ = (p, size);
+    let _ = size;
+    p
 }
 
 // SAFETY: every call is passed to `System` unchanged; the advice touches no
@@ -78,20 +77,15 @@ fn advise_huge(p: *mut u8, size: usize) {
 unsafe impl std::alloc::GlobalAlloc for HugePageAlloc {
     unsafe fn alloc(&self, layout: std::alloc::Layout) -> *mut u8 {
         // SAFETY: forwarded with the caller's guarantees.
-        let p = unsafe { std::alloc::System.alloc(layout) };
-        if layout.size() >= HUGE_BLOCK && !p.is_null() {
-            advise_huge(p, layout.size());
-        }
-        p
+        advise_huge(unsafe { std::alloc::System.alloc(layout) }, layout.size())
     }
 
     unsafe fn alloc_zeroed(&self, layout: std::alloc::Layout) -> *mut u8 {
         // SAFETY: forwarded with the caller's guarantees.
-        let p = unsafe { std::alloc::System.alloc_zeroed(layout) };
-        if layout.size() >= HUGE_BLOCK && !p.is_null() {
-            advise_huge(p, layout.size());
-        }
-        p
+        advise_huge(
+            unsafe { std::alloc::System.alloc_zeroed(layout) },
+            layout.size(),
+        )
     }
 
     unsafe fn dealloc(&self, p: *mut u8, layout: std::alloc::Layout) {
@@ -101,11 +95,7 @@ unsafe impl std::alloc::GlobalAlloc for HugePageAlloc {
 
     unsafe fn realloc(&self, p: *mut u8, layout: std::alloc::Layout, size: usize) -> *mut u8 {
         // SAFETY: forwarded with the caller's guarantees.
-        let q = unsafe { std::alloc::System.realloc(p, layout, size) };
-        if size >= HUGE_BLOCK && !q.is_null() {
-            advise_huge(q, size);
-        }
-        q
+        advise_huge(unsafe { std::alloc::System.realloc(p, layout, size) }, size)
     }
 }
 
@@ -123,8 +113,8 @@ pub fn retain_freed_memory() {
     }
 }
 
-/// Returns the heap's free pages to the system: between a job's stages, and
-/// when a worker runs out of jobs.
+/// Returns the heap's free pages to the system: when a worker runs out of
+/// jobs (a job keeps its own, see the module docs).
 pub fn release_freed_memory() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: malloc_trim takes the allocator's own locks; any thread may call it.
