@@ -16,7 +16,7 @@ pub use load::{
     load, load_from_memory, plan, plan_from_memory, DirResolver, LoadError, LoadErrorKind,
     LoadOptions, NoFiles, Plan, PlannedTexture, Resolver,
 };
-pub use seams::{find_seams, SeamEdge, SeamSet, SilhouetteEdge};
+pub use seams::{find_seams, MeshEdges, SeamEdge, SeamSet, SilhouetteEdge};
 
 /// Sampler wrap mode along one texture axis (glTF sampler `wrapS`/`wrapT`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Default, serde::Serialize)]

@@ -72,75 +72,97 @@ struct HalfEdge {
     triangle: u32,
 }
 
+/// The welded mesh's edges with the UV half-edges that meet at each: the
+/// size-independent part of seam finding, made once per texture and read
+/// by every mip level (welding is most of [`find_seams`]' time, about 30 ms
+/// on a 14 000-triangle atlas, and the mip chain waits for it level by level).
+#[derive(Default)]
+pub struct MeshEdges {
+    /// One entry per welded edge, in order of first appearance.
+    edges: Vec<Vec<HalfEdge>>,
+}
+
+impl MeshEdges {
+    /// Welds `triangles` by exact object-space position and pairs their edges.
+    pub fn new(triangles: &[UvTriangle]) -> Self {
+        let mut weld: HashMap<(u32, [u32; 3]), u32> = HashMap::new();
+        let mut edge_slot: HashMap<(u32, u32), usize> = HashMap::new();
+        let mut edges: Vec<Vec<HalfEdge>> = Vec::new();
+
+        for (ti, t) in triangles.iter().enumerate() {
+            let ids = t.positions.map(|p| {
+                let key = (t.group, p.map(f32::to_bits));
+                let next = weld.len() as u32;
+                *weld.entry(key).or_insert(next)
+            });
+            for k in 0..3 {
+                let (i, j, o) = (k, (k + 1) % 3, (k + 2) % 3);
+                let (lo, hi) = if ids[i] <= ids[j] { (i, j) } else { (j, i) };
+                if ids[i] == ids[j] {
+                    // Both ends weld to one point: a collapsed edge bounds nothing.
+                    continue;
+                }
+                let length = distance(t.positions[lo], t.positions[hi]);
+                let half = HalfEdge {
+                    uv: [t.uvs[lo], t.uvs[hi]],
+                    opposite: t.uvs[o],
+                    length,
+                    triangle: ti as u32,
+                };
+                let key = (ids[lo], ids[hi]);
+                let slot = *edge_slot.entry(key).or_insert_with(|| {
+                    edges.push(Vec::new());
+                    edges.len() - 1
+                });
+                edges[slot].push(half);
+            }
+        }
+        MeshEdges { edges }
+    }
+
+    /// The seams and silhouettes for a `width`×`height` texture: whether
+    /// two half-edges differ is judged in texels.
+    pub fn seams(&self, width: usize, height: usize) -> SeamSet {
+        let (w, h) = (width as f64, height as f64);
+        let differs = |p: [f64; 2], q: [f64; 2]| {
+            let dx = (p[0] - q[0]) * w;
+            let dy = (p[1] - q[1]) * h;
+            dx.abs().max(dy.abs()) > SAME_UV_TEXELS
+        };
+
+        let mut set = SeamSet::default();
+        for halves in &self.edges {
+            match halves.as_slice() {
+                [e1, e2] => {
+                    if differs(e1.uv[0], e2.uv[0]) || differs(e1.uv[1], e2.uv[1]) {
+                        set.seams.push(SeamEdge {
+                            a: e1.uv,
+                            b: e2.uv,
+                            a_opposite: e1.opposite,
+                            b_opposite: e2.opposite,
+                            length: e1.length,
+                            triangles: [e1.triangle, e2.triangle],
+                        });
+                    }
+                }
+                halves => set
+                    .silhouettes
+                    .extend(halves.iter().map(|e| SilhouetteEdge {
+                        uv: e.uv,
+                        opposite: e.opposite,
+                    })),
+            }
+        }
+        set
+    }
+}
+
 /// Finds the seams of `triangles` for a `width`×`height` texture.
 ///
 /// Output order follows the first appearance of each edge in `triangles`, so
 /// it is deterministic for a given model.
 pub fn find_seams(triangles: &[UvTriangle], width: usize, height: usize) -> SeamSet {
-    let mut weld: HashMap<(u32, [u32; 3]), u32> = HashMap::new();
-    let mut edge_slot: HashMap<(u32, u32), usize> = HashMap::new();
-    let mut edges: Vec<Vec<HalfEdge>> = Vec::new();
-
-    for (ti, t) in triangles.iter().enumerate() {
-        let ids = t.positions.map(|p| {
-            let key = (t.group, p.map(f32::to_bits));
-            let next = weld.len() as u32;
-            *weld.entry(key).or_insert(next)
-        });
-        for k in 0..3 {
-            let (i, j, o) = (k, (k + 1) % 3, (k + 2) % 3);
-            let (lo, hi) = if ids[i] <= ids[j] { (i, j) } else { (j, i) };
-            if ids[i] == ids[j] {
-                // Both ends weld to one point: a collapsed edge bounds nothing.
-                continue;
-            }
-            let length = distance(t.positions[lo], t.positions[hi]);
-            let half = HalfEdge {
-                uv: [t.uvs[lo], t.uvs[hi]],
-                opposite: t.uvs[o],
-                length,
-                triangle: ti as u32,
-            };
-            let key = (ids[lo], ids[hi]);
-            let slot = *edge_slot.entry(key).or_insert_with(|| {
-                edges.push(Vec::new());
-                edges.len() - 1
-            });
-            edges[slot].push(half);
-        }
-    }
-
-    let (w, h) = (width as f64, height as f64);
-    let differs = |p: [f64; 2], q: [f64; 2]| {
-        let dx = (p[0] - q[0]) * w;
-        let dy = (p[1] - q[1]) * h;
-        dx.abs().max(dy.abs()) > SAME_UV_TEXELS
-    };
-
-    let mut set = SeamSet::default();
-    for halves in &edges {
-        match halves.as_slice() {
-            [e1, e2] => {
-                if differs(e1.uv[0], e2.uv[0]) || differs(e1.uv[1], e2.uv[1]) {
-                    set.seams.push(SeamEdge {
-                        a: e1.uv,
-                        b: e2.uv,
-                        a_opposite: e1.opposite,
-                        b_opposite: e2.opposite,
-                        length: e1.length,
-                        triangles: [e1.triangle, e2.triangle],
-                    });
-                }
-            }
-            halves => set
-                .silhouettes
-                .extend(halves.iter().map(|e| SilhouetteEdge {
-                    uv: e.uv,
-                    opposite: e.opposite,
-                })),
-        }
-    }
-    set
+    MeshEdges::new(triangles).seams(width, height)
 }
 
 fn distance(p: [f32; 3], q: [f32; 3]) -> f64 {

@@ -14,7 +14,7 @@ use crate::bc1::alpha_seam_aware::{optimise_alpha, AlphaProblem};
 use crate::bc1::punch::punch_through;
 use crate::bc1::seam_aware::{optimise, Problem, SeamAwareOptions};
 use crate::bc1::{self, Block};
-use crate::model::{find_seams, SeamSet, Texture, TextureBinding, UvTriangle};
+use crate::model::{MeshEdges, SeamSet, Texture, TextureBinding, UvTriangle};
 use crate::seam::charts::{harmed, Charts, HARM_PSNR_DB};
 use crate::seam::classify::{classify, ClassifyOptions, SeamVerdicts};
 use crate::seam::erase::{
@@ -67,6 +67,7 @@ pub(super) enum Rung {
 
 pub(super) fn erase_level(
     b: &TextureBinding,
+    edges: &MeshEdges,
     tex: &Texture,
     opts: &ProcessOptions,
     erase_alpha: bool,
@@ -80,7 +81,7 @@ pub(super) fn erase_level(
     };
     let compared = colour_channels(tex.channels);
     let t = Instant::now();
-    let seams = find_seams(&b.triangles, tex.width, tex.height);
+    let seams = edges.seams(tex.width, tex.height);
     let charts = Charts::new(&grid, &b.triangles);
     let mut verdicts = if opts.erase_all {
         SeamVerdicts::all_closed(&seams)

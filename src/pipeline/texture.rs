@@ -31,7 +31,7 @@ use crate::bc1::alpha::decode_alpha_image;
 use crate::bc1::dds::MipLevel;
 use crate::bc1::{self, Decoder};
 use crate::mips;
-use crate::model::{Texture, TextureBinding};
+use crate::model::{MeshEdges, Texture, TextureBinding};
 use crate::picture::{job_versions, seams_png, SeamPicture};
 use crate::resize::SizeChange;
 use crate::seam::{colour_channels, SeamMetric};
@@ -89,6 +89,8 @@ pub(super) struct Erased<'a> {
     /// The texture brought to the size it is processed at, when it was.
     fitted: Option<(TextureBinding, SizeChange)>,
     plan: Option<AlphaPlan>,
+    /// The mesh's edges, paired once for every level's seams.
+    edges: MeshEdges,
     level0: ErasedLevel,
     started: Instant,
     erased_at: Instant,
@@ -117,13 +119,18 @@ pub(super) fn erase_texture<'a>(
     let span = tracing::info_span!("texture", image = b.image, name = %b.name);
     let _guard = span.enter();
     let plan = alpha::plan(b, opts.alpha, opts.format);
-    let level0 = erase_level(
+    let t = Instant::now();
+    let edges = MeshEdges::new(&b.triangles);
+    let weld_ms = ms_since(t);
+    let mut level0 = erase_level(
         b,
+        &edges,
         &b.texture,
         opts,
         plan.is_some_and(|p| p.erase),
         Rung::Base,
     )?;
+    level0.seams_ms += weld_ms;
     tracing::info!(
         seam_edges = level0.seams.seams.len(),
         closed = level0.verdicts.closed_count(),
@@ -136,6 +143,7 @@ pub(super) fn erase_texture<'a>(
         original,
         fitted,
         plan,
+        edges,
         level0,
         started,
         erased_at: Instant::now(),
@@ -193,7 +201,10 @@ pub(super) fn finish_texture(
                 .then(|| encode_level0(b, level0, opts, plan.as_ref(), &figures))
                 .transpose()
         },
-        || Beside::run(b, level0, &measure, alphas.as_ref(), opts, plan.as_ref()),
+        || {
+            let level = (&erased.edges, level0);
+            Beside::run(b, level, &measure, alphas.as_ref(), opts, plan.as_ref())
+        },
     );
     let (first, side) = (first?, side?);
     let (encode_ms, seam_aware_ms, figured_ms) = first.as_ref().map_or((0, 0, 0), Level0::timings);
@@ -524,7 +535,7 @@ struct Beside {
 impl Beside {
     fn run(
         b: &TextureBinding,
-        level0: &ErasedLevel,
+        (edges, level0): (&MeshEdges, &ErasedLevel),
         measure: &Measure<'_>,
         alphas: Option<&(AlphaPlan, Vec<f32>, Vec<f32>)>,
         opts: &ProcessOptions,
@@ -537,7 +548,7 @@ impl Beside {
                 let t = Instant::now();
                 let smaller = if opts.mips && opts.format.compressed() {
                     let count = mips::chain_len(tex.width, tex.height);
-                    smaller_levels(b, &level0.float, 1, count, opts, plan)
+                    smaller_levels(b, edges, &level0.float, 1, count, opts, plan)
                 } else {
                     Ok(Vec::new())
                 };
@@ -583,6 +594,7 @@ impl Beside {
 /// beside the erasure of the levels below it, which does not need it.
 fn smaller_levels(
     b: &TextureBinding,
+    edges: &MeshEdges,
     above: &Texture,
     k: usize,
     count: usize,
@@ -593,16 +605,24 @@ fn smaller_levels(
         return Ok(Vec::new());
     }
     let filtered = mips::downsample(above, b.wrap_s, b.wrap_t);
-    let level = erase_level(b, &filtered, opts, plan.is_some_and(|p| p.erase), Rung::Mip)?;
+    let level = erase_level(
+        b,
+        edges,
+        &filtered,
+        opts,
+        plan.is_some_and(|p| p.erase),
+        Rung::Mip,
+    )?;
     drop(filtered);
     let (enc, below) = rayon::join(
         || encode_mip(b, &level, opts, plan),
-        || smaller_levels(b, &level.float, k + 1, count, opts, plan),
+        || smaller_levels(b, edges, &level.float, k + 1, count, opts, plan),
     );
     let ((shipped, encode_ms, seam_aware_ms), mut below) = (enc?, below?);
     tracing::debug!(
         level = k,
         width = level.grid.width,
+        seams_ms = level.seams_ms,
         erase_ms = level.erase_ms,
         encode_ms,
         seam_aware_ms,
