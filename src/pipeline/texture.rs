@@ -614,9 +614,13 @@ fn smaller_levels(
         Rung::Mip,
     )?;
     drop(filtered);
-    let (enc, below) = rayon::join(
-        || encode_mip(b, &level, opts, plan),
+    // The chain of erasures is the longer path: this thread goes on down it,
+    // and the level's encoding waits to be taken by a thread that is free
+    // (the other way round, the next level's erasure waited for this one's
+    // seam-aware search whenever level 0's encoding held the other thread).
+    let (below, enc) = rayon::join(
         || smaller_levels(b, edges, &level.float, k + 1, count, opts, plan),
+        || encode_mip(b, &level, opts, plan),
     );
     let ((shipped, encode_ms, seam_aware_ms), mut below) = (enc?, below?);
     tracing::debug!(

@@ -164,6 +164,7 @@ impl Cholesky {
     /// Factors the lower triangle of `a`.
     pub fn new(a: &SparseColMat<u32, f64>) -> Result<Self, SolveError> {
         let err = |e: &dyn std::fmt::Debug| SolveError::Assembly(format!("{e:?}"));
+        let t = std::time::Instant::now();
         let symbolic = factorize_symbolic_cholesky(
             a.symbolic(),
             Side::Lower,
@@ -171,6 +172,7 @@ impl Cholesky {
             Default::default(),
         )
         .map_err(|e| err(&e))?;
+        let symbolic_ms = t.elapsed().as_millis() as u64;
         let mut factor = vec![0.0; symbolic.len_val()];
         let par = Par::rayon(0);
         let mut mem = MemBuffer::try_new(
@@ -188,6 +190,18 @@ impl Cholesky {
                 Default::default(),
             )
             .map_err(|e| SolveError::NotPositiveDefinite(format!("{e:?}")))?;
+        tracing::trace!(
+            rows = a.nrows(),
+            nonzeros = a.compute_nnz(),
+            factor_nonzeros = factor.len(),
+            supernodal = matches!(
+                symbolic.raw(),
+                faer::sparse::linalg::cholesky::SymbolicCholeskyRaw::Supernodal(_)
+            ),
+            symbolic_ms,
+            numeric_ms = t.elapsed().as_millis() as u64 - symbolic_ms,
+            "factored"
+        );
         Ok(Cholesky { symbolic, factor })
     }
 
