@@ -260,7 +260,49 @@ fn nearest_level(v: f64, ch: usize) -> i32 {
 /// One seam point's reach into one block: texel slots and coefficients.
 struct Touch {
     point: u32,
-    local: Vec<(u8, f64)>,
+    local: Reach,
+}
+
+/// A seam point's texel slots in one block and their coefficients, in the
+/// order its taps first reach them. Held inline: a point has eight taps, and
+/// on a 2048² atlas the hundreds of thousands of touches, each with a vector
+/// of its own, cost more to allocate and free than the search spends on them.
+#[derive(Clone, Copy)]
+struct Reach {
+    len: u8,
+    slot: [u8; 8],
+    coefficient: [f64; 8],
+}
+
+impl Reach {
+    fn new() -> Self {
+        Reach {
+            len: 0,
+            slot: [0; 8],
+            coefficient: [0.0; 8],
+        }
+    }
+
+    /// Adds `w` to slot `k`'s coefficient, taking a new place for a new slot.
+    fn add(&mut self, k: u8, w: f64) {
+        let n = usize::from(self.len);
+        match self.slot[..n].iter().position(|&s| s == k) {
+            Some(i) => self.coefficient[i] += w,
+            None => {
+                self.slot[n] = k;
+                self.coefficient[n] = w;
+                self.len += 1;
+            }
+        }
+    }
+
+    fn iter(&self) -> impl Iterator<Item = (u8, f64)> + '_ {
+        let n = usize::from(self.len);
+        self.slot[..n]
+            .iter()
+            .copied()
+            .zip(self.coefficient[..n].iter().copied())
+    }
 }
 
 struct Layout {
@@ -299,19 +341,23 @@ impl Layout {
         }
         let mut touches: Vec<Vec<Touch>> = (0..blocks.len()).map(|_| Vec::new()).collect();
         for (qi, q) in p.points.iter().enumerate() {
-            let mut per: Vec<(usize, Vec<(u8, f64)>)> = Vec::new();
+            // The blocks the point's taps reach, in the order they first do.
+            let mut per = [(0usize, Reach::new()); 8];
+            let mut reached = 0;
             for &(t, w) in &q.taps {
                 let (b, k) = block_of(t);
                 let s = slot[b] as usize;
-                match per.iter_mut().find(|e| e.0 == s) {
-                    Some(e) => match e.1.iter_mut().find(|l| l.0 == k) {
-                        Some(l) => l.1 += w,
-                        None => e.1.push((k, w)),
-                    },
-                    None => per.push((s, vec![(k, w)])),
-                }
+                let i = match per[..reached].iter().position(|e| e.0 == s) {
+                    Some(i) => i,
+                    None => {
+                        per[reached].0 = s;
+                        reached += 1;
+                        reached - 1
+                    }
+                };
+                per[i].1.add(k, w);
             }
-            for (s, local) in per {
+            for &(s, local) in &per[..reached] {
                 touches[s].push(Touch {
                     point: qi as u32,
                     local,
@@ -365,17 +411,20 @@ impl Layout {
 
     /// For each footprint block, the others that share a seam point with
     /// it: those whose local energy it enters.
-    fn neighbours(&self, points: usize) -> Vec<Vec<u32>> {
-        let mut at_point: Vec<Vec<u32>> = vec![Vec::new(); points];
-        for (s, touches) in self.touches.iter().enumerate() {
-            for t in touches {
-                at_point[t.point as usize].push(s as u32);
-            }
-        }
+    fn neighbours(&self) -> Vec<Vec<u32>> {
         let mut out: Vec<Vec<u32>> = vec![Vec::new(); self.blocks.len()];
-        for blocks in &at_point {
-            for &a in blocks {
-                out[a as usize].extend(blocks.iter().copied().filter(|&b| b != a));
+        for taps in &self.at {
+            // The blocks this point's taps lie in, each once.
+            let mut blocks = [0u32; 8];
+            let mut n = 0;
+            for &(s, _) in taps {
+                if !blocks[..n].contains(&s) {
+                    blocks[n] = s;
+                    n += 1;
+                }
+            }
+            for &a in &blocks[..n] {
+                out[a as usize].extend(blocks[..n].iter().copied().filter(|&b| b != a));
             }
         }
         for n in &mut out {
@@ -415,7 +464,7 @@ pub fn optimise(
 
     float_solve(p, &layout, &mut states, opts)?;
     if opts.integer_search {
-        let neighbours = layout.neighbours(p.points.len());
+        let neighbours = layout.neighbours();
         // A block whose last search ended at a fixed point, none of whose
         // neighbours has moved since, would find the same state again: its
         // energy depends on nothing else. Later sweeps touch only the
@@ -617,8 +666,8 @@ fn local_energy(
     for touch in &layout.touches[s] {
         let q = &p.points[touch.point as usize];
         let w = opts.alpha * q.weight;
-        for &(k, ck) in &touch.local {
-            for &(l, cl) in &touch.local {
+        for (k, ck) in touch.local.iter() {
+            for (l, cl) in touch.local.iter() {
                 m[k as usize][l as usize] += w * ck * cl;
             }
         }
@@ -632,7 +681,7 @@ fn local_energy(
                     }
                 }
             }
-            for &(k, ck) in &touch.local {
+            for (k, ck) in touch.local.iter() {
                 for ch in 0..3 {
                     r[di][ch][k as usize] -= w * ck * rest[ch];
                 }
