@@ -663,7 +663,7 @@ fn solve_band(
         "band assembled"
     );
     let x = match placed {
-        None => Cholesky::new(&a.to_csr()?.to_faer())?.solve_interleaved(&b, ch),
+        None => Cholesky::new(&a.to_csr()?.into_faer())?.solve_interleaved(&b, ch),
         Some((nodes, x0)) => {
             let (x, iterations) = multigrid::solve(a, nodes, b, ch, x0)?;
             tracing::debug!(

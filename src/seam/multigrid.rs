@@ -359,7 +359,7 @@ struct BlockPart {
 impl BlockPart {
     /// Splits `block` into its connected pieces, dealt out to at most
     /// [`BLOCK_PARTS`] parts of about equal size, and factors each part.
-    fn split(block: &SymCsr) -> Result<Vec<BlockPart>, SolveError> {
+    fn split(block: SymCsr) -> Result<Vec<BlockPart>, SolveError> {
         let n = block.n;
         let mut parent: Vec<u32> = (0..n as u32).collect();
         fn find(parent: &mut [u32], mut i: u32) -> u32 {
@@ -395,10 +395,17 @@ impl BlockPart {
             }
             rows[part_of_root[root] as usize].push(i);
         }
+        if n > 0 && rows.iter().any(|r| r.len() == n) {
+            // One piece (a many-seam atlas's seams all meet): the part is the
+            // block itself, whose copy would be the same matrix.
+            let rows = (0..n as u32).collect();
+            let factor = Cholesky::new(&block.into_faer())?;
+            return Ok(vec![BlockPart { rows, factor }]);
+        }
         rows.into_par_iter()
             .filter(|r| !r.is_empty())
             .map(|rows| {
-                let factor = Cholesky::new(&block.submatrix(&rows)?.to_faer())?;
+                let factor = Cholesky::new(&block.submatrix(&rows)?.into_faer())?;
                 Ok(BlockPart { rows, factor })
             })
             .collect()
@@ -644,7 +651,7 @@ fn solve_n<const C: usize>(
         || Hierarchy::new(fine, nodes, exact),
         || {
             let tb = std::time::Instant::now();
-            let parts = block.map_or(Ok(Vec::new()), |b| BlockPart::split(&b));
+            let parts = block.map_or(Ok(Vec::new()), BlockPart::split);
             tracing::debug!(
                 rss_mb = crate::heap::resident_mb(),
                 elapsed_ms = tb.elapsed().as_millis() as u64,
@@ -663,7 +670,7 @@ fn solve_n<const C: usize>(
     // four parts, 31 522 + 8 664 + 2 687 + 25 745 unknowns).
     let n = m.fine.n();
     let (coarsest, start) = rayon::join(
-        || BlockPart::split(&last),
+        || BlockPart::split(last),
         || {
             let bb = dots::<C>(&b, &b);
             let mut r = b;
@@ -677,7 +684,6 @@ fn solve_n<const C: usize>(
             Ok::<_, SolveError>(Start { bb, r, zq, p, ws })
         },
     );
-    drop(last);
     let (coarsest, start) = (coarsest?, start?);
     tracing::debug!(
         rss_mb = crate::heap::resident_mb(),

@@ -93,16 +93,17 @@ impl SymCsr {
     }
 
     /// For faer's Cholesky, which reads the lower triangle of a CSC matrix.
-    pub fn to_faer(&self) -> SparseColMat<u32, f64> {
+    /// Consumes the rows: a coarsest level's are tens of megabytes.
+    pub fn into_faer(self) -> SparseColMat<u32, f64> {
         SparseColMat::new(
             SymbolicSparseColMat::new_checked(
                 self.n,
                 self.n,
                 self.ptr.iter().map(|&p| p as u32).collect(),
                 None,
-                self.col.clone(),
+                self.col,
             ),
-            self.val.clone(),
+            self.val,
         )
     }
 }
