@@ -108,6 +108,9 @@ impl SymCsr {
     }
 }
 
+/// Rows per parallel run of [`Rows::submatrix`].
+const SUBMATRIX_RUN: usize = 8192;
+
 /// Read access to the rows of a symmetric matrix, and the kernels the
 /// multigrid solver runs on it. Rows list their entries in increasing column
 /// order, diagonal included, so every kernel sums in the same order whatever
@@ -197,23 +200,39 @@ pub trait Rows: Sync {
 
     /// The principal submatrix on `rows` (increasing), renumbered 0..rows.len().
     fn submatrix(&self, rows: &[u32]) -> Result<SymCsr, SolveError> {
-        let mut local = vec![u32::MAX; self.n()];
+        let mut local = crate::heap::filled(self.n(), u32::MAX);
         for (k, &i) in rows.iter().enumerate() {
             local[i as usize] = k as u32;
         }
+        // Rows in parallel runs, joined in order: the exact block of a
+        // many-seam atlas's band is millions of entries, taken while the
+        // rest of the solver's set-up waits.
+        let runs: Vec<(Vec<usize>, Vec<u32>, Vec<f64>)> = rows
+            .par_chunks(SUBMATRIX_RUN)
+            .map(|run| {
+                let (mut len, mut col, mut val) = (Vec::with_capacity(run.len()), vec![], vec![]);
+                for &i in run {
+                    self.for_each(i as usize, |j, v| {
+                        let k = local[j];
+                        if k != u32::MAX {
+                            col.push(k);
+                            val.push(v);
+                        }
+                    });
+                    len.push(col.len());
+                }
+                (len, col, val)
+            })
+            .collect();
+        let entries = runs.iter().map(|r| r.1.len()).sum();
         let mut ptr = Vec::with_capacity(rows.len() + 1);
         ptr.push(0);
-        let mut col = Vec::new();
-        let mut val = Vec::new();
-        for &i in rows {
-            self.for_each(i as usize, |j, v| {
-                let k = local[j];
-                if k != u32::MAX {
-                    col.push(k);
-                    val.push(v);
-                }
-            });
-            ptr.push(col.len());
+        let (mut col, mut val) = (Vec::with_capacity(entries), Vec::with_capacity(entries));
+        for (len, c, v) in runs {
+            let base = col.len();
+            ptr.extend(len.iter().map(|l| base + l));
+            col.extend_from_slice(&c);
+            val.extend_from_slice(&v);
         }
         SymCsr::from_parts(ptr, col, val)
     }
