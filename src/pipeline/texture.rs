@@ -201,10 +201,7 @@ pub(super) fn finish_texture(
                 .then(|| encode_level0(b, level0, opts, plan.as_ref(), &figures))
                 .transpose()
         },
-        || {
-            let level = (&erased.edges, level0);
-            Beside::run(b, level, &measure, alphas.as_ref(), opts, plan.as_ref())
-        },
+        || Beside::run(&erased, &measure, alphas.as_ref(), opts),
     );
     let (first, side) = (first?, side?);
     let (encode_ms, seam_aware_ms, figured_ms) = first.as_ref().map_or((0, 0, 0), Level0::timings);
@@ -534,13 +531,13 @@ struct Beside {
 
 impl Beside {
     fn run(
-        b: &TextureBinding,
-        (edges, level0): (&MeshEdges, &ErasedLevel),
+        texture: &Erased<'_>,
         measure: &Measure<'_>,
         alphas: Option<&(AlphaPlan, Vec<f32>, Vec<f32>)>,
         opts: &ProcessOptions,
-        plan: Option<&AlphaPlan>,
     ) -> Result<Beside, PipelineError> {
+        let (b, level0) = (texture.binding(), &texture.level0);
+        let (edges, plan) = (&texture.edges, texture.plan.as_ref());
         let tex = &b.texture;
         // The mip chain is the longest of these: it starts first.
         let (smaller, (png, input, erased, alpha, png_ms, metrics_ms)) = rayon::join(
