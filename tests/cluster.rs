@@ -334,6 +334,9 @@ fn two_api_servers_and_three_workers_lose_nothing() {
 
     // Every job succeeds; only the killed worker's job ran twice.
     let mut attempts = BTreeMap::new();
+    // Whether the kill caught its job mid-run: a job can finish between
+    // being seen running and the SIGKILL, and then no lease is left to expire.
+    let mut caught = false;
     for id in &ids {
         let j = wait_job(&c, &apis[1], id, 600, |j| {
             !matches!(j["state"].as_str(), Some("queued" | "running"))
@@ -347,6 +350,7 @@ fn two_api_servers_and_three_workers_lose_nothing() {
                     j["worker"].as_str() != Some(worker.as_str()) || j["interruptions"] == 0,
                     "{j}"
                 );
+                caught = j["worker"].as_str() != Some(worker.as_str());
             }
         }
         *attempts
@@ -363,7 +367,7 @@ fn two_api_servers_and_three_workers_lose_nothing() {
             .map(|n| n.counters(&c).1)
             .sum::<u64>();
     assert!(
-        expired >= 1,
+        expired >= 1 || !caught,
         "the killed worker's lease was never taken back"
     );
 
