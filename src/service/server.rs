@@ -15,7 +15,7 @@ use super::job::{is_job_id, now_ms};
 use super::objects::ObjectFileStore;
 use super::postgres::PgJobStore;
 use super::sqlite::SqliteJobStore;
-use super::store::{keys, FileStore, JobStore, StoreError, StoreEvent};
+use super::store::{keys, FileStore, JobStore, Reclaimed, StoreError, StoreEvent};
 use super::worker::{self, MAX_LOST_LEASES};
 
 #[derive(Debug, thiserror::Error)]
@@ -112,8 +112,13 @@ pub fn open_stores(cfg: &Config, rt: &tokio::runtime::Handle) -> Result<Stores, 
 
 /// Puts back what a crash interrupted. A process that owns its stores
 /// takes back every running job at once, and removes files no job owns;
-/// on shared stores others are running jobs, whose leases tell.
-fn recover(jobs: &dyn JobStore, files: &dyn FileStore, exclusive: bool) -> Result<(), StoreError> {
+/// on shared stores others are running jobs, whose leases tell. Returns
+/// the jobs taken back, for the lease counters.
+fn recover(
+    jobs: &dyn JobStore,
+    files: &dyn FileStore,
+    exclusive: bool,
+) -> Result<Reclaimed, StoreError> {
     let now = now_ms();
     let expired_before = if exclusive { u64::MAX } else { now };
     let reclaimed = jobs.reclaim(expired_before, MAX_LOST_LEASES, now)?;
@@ -134,20 +139,20 @@ fn recover(jobs: &dyn JobStore, files: &dyn FileStore, exclusive: bool) -> Resul
             }
         }
     }
-    Ok(())
+    Ok(reclaimed)
 }
 
 /// Opens the stores and recovers them, off the async runtime.
-async fn start_stores(cfg: &Config) -> Result<Stores, ServeError> {
+async fn start_stores(cfg: &Config) -> Result<(Stores, Reclaimed), ServeError> {
     let (cfg, rt) = (cfg.clone(), tokio::runtime::Handle::current());
     tokio::task::spawn_blocking(move || {
         let stores = open_stores(&cfg, &rt)?;
-        recover(
+        let reclaimed = recover(
             stores.jobs.as_ref(),
             stores.files.as_ref(),
             stores.exclusive,
         )?;
-        Ok(stores)
+        Ok((stores, reclaimed))
     })
     .await
     .map_err(|e| StoreError::Jobs(e.to_string()))?
@@ -243,12 +248,15 @@ pub(super) async fn run_process(
     addrs: Vec<SocketAddr>,
     role: Role,
 ) -> Result<(), ServeError> {
-    let Stores {
-        jobs,
-        files,
-        lock: _lock,
-        ..
-    } = start_stores(&cfg).await?;
+    let (
+        Stores {
+            jobs,
+            files,
+            lock: _lock,
+            ..
+        },
+        reclaimed,
+    ) = start_stores(&cfg).await?;
     let listener = super::listen::bind(&addrs).map_err(|source| ServeError::Listen {
         addr: cfg.listen.clone(),
         source,
@@ -258,6 +266,12 @@ pub(super) async fn run_process(
     let grace = cfg.grace;
     let limits = super::listen::Limits::of(&cfg);
     let app: Shared = Arc::new(App::new(cfg, jobs, files));
+    // Leases taken back at start count as those the lease task takes back:
+    // a process restarted while another's worker lay dead found its lease.
+    for job in reclaimed.requeued.iter().chain(&reclaimed.failed) {
+        app.metrics
+            .lease_expired(job.worker.as_deref().unwrap_or(""));
+    }
 
     relay_store_events(&app);
     for index in 0..workers {
