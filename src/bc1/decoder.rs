@@ -70,11 +70,13 @@ impl Decoder {
         four_colour_palettes().unit[self.palette_at(ch, x0, x1)]
     }
 
-    /// [`Decoder::four_colour_palette_unit`] of decoder `Decoder::ALL[d]`,
-    /// for loops that hold the decoder's place rather than the decoder.
+    /// Every [`Decoder::four_colour_palette_unit`] of decoder
+    /// `Decoder::ALL[d]` and channel `ch`, for a search that scores many
+    /// endpoint pairs: the table is reached once, not once per pair.
     #[inline]
-    pub(crate) fn four_colour_palette_unit_at(d: usize, ch: usize, x0: u8, x1: u8) -> [f64; 4] {
-        four_colour_palettes().unit[Self::table_index(d, ch, x0, x1)]
+    pub(crate) fn four_colour_unit_table(d: usize, ch: usize) -> UnitPalettes {
+        let start = Self::table_index(d, ch, 0, 0);
+        UnitPalettes(&four_colour_palettes().unit[start..start + SIDE * SIDE])
     }
 
     #[inline]
@@ -217,6 +219,19 @@ const SIDE: usize = 64;
 struct FourColourPalettes {
     levels: Vec<[f32; 4]>,
     unit: Vec<[f64; 4]>,
+}
+
+/// One decoder's four-colour palettes of one channel in \[0, 1\], by
+/// endpoint pair (see [`Decoder::four_colour_unit_table`]).
+#[derive(Clone, Copy)]
+pub(crate) struct UnitPalettes(&'static [[f64; 4]]);
+
+impl UnitPalettes {
+    /// The palette of 565 endpoint values `x0`, `x1` (each below 64).
+    #[inline]
+    pub(crate) fn at(self, x0: usize, x1: usize) -> [f64; 4] {
+        self.0[x0 * SIDE + x1]
+    }
 }
 
 fn four_colour_palettes() -> &'static FourColourPalettes {

@@ -235,12 +235,35 @@ fn channel_palette(dec: Decoder, ch: usize, q0: i32, q1: i32) -> [f64; 4] {
 }
 
 /// Positions in [`Decoder::ALL`] of the decoders `target` scores under.
-fn decoder_slots(target: Target) -> Vec<usize> {
-    target
-        .decoders()
-        .iter()
-        .map(|d| Decoder::ALL.iter().position(|a| a == d).unwrap_or(0))
-        .collect()
+/// The places in [`Decoder::ALL`] of a target's decoders, held inline: a
+/// block's visit takes microseconds, and a vector per visit a good part of
+/// them.
+#[derive(Clone, Copy)]
+struct Slots {
+    len: usize,
+    slot: [usize; MAX_DECODERS],
+}
+
+impl Slots {
+    fn of(target: Target) -> Self {
+        let mut out = Slots {
+            len: 0,
+            slot: [0; MAX_DECODERS],
+        };
+        for d in target.decoders() {
+            out.slot[out.len] = Decoder::ALL.iter().position(|a| a == d).unwrap_or(0);
+            out.len += 1;
+        }
+        out
+    }
+
+    fn len(&self) -> usize {
+        self.len
+    }
+
+    fn iter(&self) -> impl Iterator<Item = usize> + '_ {
+        self.slot[..self.len].iter().copied()
+    }
 }
 
 /// The nearest 565 level to `v` in \[0, 1\] for channel `ch`.
@@ -545,9 +568,9 @@ fn decoded_at(states: &[State], (slot, k): (u32, u8), d: usize, ch: usize) -> f6
 
 /// E_c + α·E_s of the current states, the mean over the target's decoders.
 fn total_energy(p: &Problem, layout: &Layout, states: &[State], opts: &SeamAwareOptions) -> f64 {
-    let slots = decoder_slots(opts.target);
+    let slots = Slots::of(opts.target);
     let mut e = 0.0;
-    for &d in &slots {
+    for d in slots.iter() {
         for (s, &b) in layout.blocks.iter().enumerate() {
             for k in 0..16 {
                 if let Some(t) = layout.texel(p, b, k) {
@@ -637,9 +660,10 @@ fn float_solve(
 /// the decoder; r does, through the neighbours' decoded values.
 struct Local {
     m: [[f64; 16]; 16],
-    /// Per targeted decoder (in the order of [`decoder_slots`]), per channel.
-    r: Vec<[[f64; 16]; 3]>,
-    slots: Vec<usize>,
+    /// Per targeted decoder (in the order of [`Slots`]; the first
+    /// `slots.len()`), per channel.
+    r: [[[f64; 16]; 3]; MAX_DECODERS],
+    slots: Slots,
 }
 
 fn local_energy(
@@ -650,7 +674,7 @@ fn local_energy(
     opts: &SeamAwareOptions,
 ) -> Local {
     let b = layout.blocks[s];
-    let slots = decoder_slots(opts.target);
+    let slots = Slots::of(opts.target);
     let mut m = [[0.0; 16]; 16];
     let mut r0 = [[0.0; 16]; 3];
     for k in 0..16 {
@@ -662,7 +686,7 @@ fn local_energy(
             }
         }
     }
-    let mut r = vec![r0; slots.len()];
+    let mut r = [r0; MAX_DECODERS];
     for touch in &layout.touches[s] {
         let q = &p.points[touch.point as usize];
         let w = opts.alpha * q.weight;
@@ -671,7 +695,7 @@ fn local_energy(
                 m[k as usize][l as usize] += w * ck * cl;
             }
         }
-        for (di, &d) in slots.iter().enumerate() {
+        for (di, d) in slots.iter().enumerate() {
             // Contribution of texels outside this block, at their current values.
             let mut rest = [0.0f64; 3];
             for (&(_, c), &place) in q.taps.iter().zip(&layout.at[touch.point as usize]) {
@@ -709,7 +733,7 @@ fn evaluate(local: &Local, st: &State) -> Evaluated {
         mv: [[[0.0; 16]; 3]; MAX_DECODERS],
         energy: 0.0,
     };
-    for (di, &d) in local.slots.iter().enumerate() {
+    for (di, d) in local.slots.iter().enumerate() {
         for ch in 0..3 {
             for k in 0..16 {
                 out.v[di][ch][k] = st.decoded(d, k, ch);
@@ -790,7 +814,7 @@ struct Improved {
 fn try_index(local: &Local, st: &mut State, ev: &mut Evaluated, k: usize, i: u8) -> bool {
     let mut de = 0.0;
     let mut deltas = [[0.0f64; 3]; MAX_DECODERS];
-    for (di, &d) in local.slots.iter().enumerate() {
+    for (di, d) in local.slots.iter().enumerate() {
         for ch in 0..3 {
             let delta = st.pal[d][ch][i as usize] - ev.v[di][ch][k];
             deltas[di][ch] = delta;
@@ -850,22 +874,22 @@ fn best_endpoints(local: &Local, st: &State) -> Option<State> {
     let mut out = *st;
     for ch in 0..3 {
         // R per decoder: r summed by palette entry.
-        let rs: Vec<[f64; 4]> = local
-            .r
-            .iter()
-            .map(|r| {
-                let mut acc = [0.0f64; 4];
-                for k in 0..16 {
-                    acc[st.idx[k] as usize] += r[ch][k];
-                }
-                acc
-            })
-            .collect();
-        let centre = ideal_optimum(&h, &rs, st, ch);
+        let mut rs = [[0.0f64; 4]; MAX_DECODERS];
+        for (acc, r) in rs.iter_mut().zip(&local.r).take(local.slots.len()) {
+            for k in 0..16 {
+                acc[st.idx[k] as usize] += r[ch][k];
+            }
+        }
+        let rs = &rs[..local.slots.len()];
+        let centre = ideal_optimum(&h, rs, st, ch);
+        let mut tables = [Decoder::four_colour_unit_table(0, ch); MAX_DECODERS];
+        for (t, d) in tables.iter_mut().zip(local.slots.iter()) {
+            *t = Decoder::four_colour_unit_table(d, ch);
+        }
         let cost = |q0: i32, q1: i32| {
             let mut c = 0.0;
-            for (&d, r) in local.slots.iter().zip(&rs) {
-                let p = Decoder::four_colour_palette_unit_at(d, ch, q0 as u8, q1 as u8);
+            for (table, r) in tables.iter().zip(rs) {
+                let p = table.at(q0 as usize, q1 as usize);
                 for i in 0..4 {
                     let mut sp = upper[i][i] * p[i];
                     for j in i + 1..4 {
