@@ -63,6 +63,8 @@ const REGULARISER: f64 = 1e-6;
 /// the search's time: Fox 744 → 1028 ms, cube_gradient_1024 75 → 131,
 /// blub 325 → 445.
 const ENDPOINT_RADIUS: i32 = 4;
+/// Candidates for one endpoint with the other fixed.
+const CANDIDATES_PER_ROW: usize = 2 * ENDPOINT_RADIUS as usize + 1;
 
 /// α of seam-aware BC1 unless told otherwise, from the trade-off curve of
 /// `cargo bench --bench seam_aware`, with the cost measured against the
@@ -904,13 +906,16 @@ fn best_endpoints(local: &Local, st: &State) -> Option<State> {
         let (g0, g1) = (nearest_level(centre[0], ch), nearest_level(centre[1], ch));
         let mut best = (st.q[0][ch], st.q[1][ch]);
         let mut best_c = cost(best.0, best.1);
-        for d0 in -ENDPOINT_RADIUS..=ENDPOINT_RADIUS {
-            for d1 in -ENDPOINT_RADIUS..=ENDPOINT_RADIUS {
-                let (q0, q1) = (g0 + d0, g1 + d1);
-                if !(0..=max).contains(&q0) || !(0..=max).contains(&q1) {
-                    continue;
-                }
-                let c = cost(q0, q1);
+        // A row of candidates is scored before any is compared: the
+        // scores do not depend on each other, so the processor overlaps
+        // them, where scoring and comparing in turn waits on each sum.
+        let (lo, hi) = ((g1 - ENDPOINT_RADIUS).max(0), (g1 + ENDPOINT_RADIUS).min(max));
+        let mut row = [0.0f64; CANDIDATES_PER_ROW];
+        for q0 in (g0 - ENDPOINT_RADIUS).max(0)..=(g0 + ENDPOINT_RADIUS).min(max) {
+            for (c, q1) in row.iter_mut().zip(lo..=hi) {
+                *c = cost(q0, q1);
+            }
+            for (&c, q1) in row.iter().zip(lo..=hi) {
                 if c < best_c {
                     best = (q0, q1);
                     best_c = c;
