@@ -17,7 +17,7 @@
 
 use std::fmt;
 
-use crate::model::{find_seams, Plan, PlannedTexture, UvTriangle};
+use crate::model::{MeshEdges, Plan, PlannedTexture, UvTriangle};
 use crate::pipeline::ProcessOptions;
 use crate::seam::grid::TexelGrid;
 use crate::seam::quadrature::Segment;
@@ -289,8 +289,10 @@ fn texture_need(t: &PlannedTexture, mips: bool) -> (Need, Level0) {
     let (mut w, mut h) = (t.header.width as usize, t.header.height as usize);
     let mut need = Need::default();
     let mut level0 = None;
+    // Welded once: only which half-edges differ depends on the level's size.
+    let edges = MeshEdges::new(&t.triangles);
     loop {
-        let (seam_points, silhouette_points) = quadrature_points(t, w, h);
+        let (seam_points, silhouette_points) = quadrature_points(t, &edges, w, h);
         let level = Need {
             texels: (w * h) as u64,
             covered_texels: covered(&t.triangles, w, h),
@@ -334,14 +336,14 @@ fn covered(triangles: &[UvTriangle], w: usize, h: usize) -> u64 {
 /// one piece per cell crossing of either side, six points a piece. (The
 /// erasure makes points of the seams alone; a silhouette's pieces are the
 /// cells it marks, counted alike against [`MAX_POINTS_PER_TEXEL`].)
-fn quadrature_points(t: &PlannedTexture, w: usize, h: usize) -> (u64, u64) {
+fn quadrature_points(t: &PlannedTexture, edges: &MeshEdges, w: usize, h: usize) -> (u64, u64) {
     let grid = TexelGrid {
         width: w,
         height: h,
         wrap_s: t.wrap_s,
         wrap_t: t.wrap_t,
     };
-    let seams = find_seams(&t.triangles, w, h);
+    let seams = edges.seams(w, h);
     let pieces = |uv: [[f64; 2]; 2]| crossings(Segment::from_uv(&grid, uv));
     let seam_pieces = seams
         .seams

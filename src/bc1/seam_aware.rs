@@ -909,7 +909,10 @@ fn best_endpoints(local: &Local, st: &State) -> Option<State> {
         // A row of candidates is scored before any is compared: the
         // scores do not depend on each other, so the processor overlaps
         // them, where scoring and comparing in turn waits on each sum.
-        let (lo, hi) = ((g1 - ENDPOINT_RADIUS).max(0), (g1 + ENDPOINT_RADIUS).min(max));
+        let (lo, hi) = (
+            (g1 - ENDPOINT_RADIUS).max(0),
+            (g1 + ENDPOINT_RADIUS).min(max),
+        );
         let mut row = [0.0f64; CANDIDATES_PER_ROW];
         for q0 in (g0 - ENDPOINT_RADIUS).max(0)..=(g0 + ENDPOINT_RADIUS).min(max) {
             for (c, q1) in row.iter_mut().zip(lo..=hi) {
