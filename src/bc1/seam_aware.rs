@@ -510,12 +510,14 @@ pub fn optimise(
             // which then needs no new sum over every seam point per sweep
             // (and no difference of two large sums).
             let mut fell = 0.0;
+            let mut visited = 0usize;
             for wave in &waves {
                 let due: Vec<u32> = wave
                     .iter()
                     .copied()
                     .filter(|&s| !settled[s as usize])
                     .collect();
+                visited += due.len();
                 let improve = |&s: &u32| improve_block(p, &layout, &states, s as usize, opts);
                 let found: Vec<Improved> = if due.len() >= MIN_PARALLEL_WAVE {
                     due.par_iter().map(improve).collect()
@@ -536,6 +538,13 @@ pub fn optimise(
             }
             let fell = fell / decoders;
             energy -= fell;
+            tracing::trace!(
+                sweep = stats.sweeps,
+                visited,
+                fell,
+                energy,
+                "seam-aware sweep"
+            );
             if fell <= 1e-9 * energy.max(1e-300) {
                 break;
             }
