@@ -236,7 +236,6 @@ fn channel_palette(dec: Decoder, ch: usize, q0: i32, q1: i32) -> [f64; 4] {
     dec.four_colour_palette_unit(ch, q0 as u8, q1 as u8)
 }
 
-/// Positions in [`Decoder::ALL`] of the decoders `target` scores under.
 /// The places in [`Decoder::ALL`] of a target's decoders, held inline: a
 /// block's visit takes microseconds, and a vector per visit a good part of
 /// them.

@@ -209,7 +209,7 @@ async fn leases(app: Shared) {
         .await;
         match reclaimed {
             Ok(Ok(r)) => {
-                for job in r.requeued.iter().chain(&r.failed) {
+                for job in r.jobs() {
                     let worker = job.worker.as_deref().unwrap_or("");
                     tracing::warn!(job_id = %job.id, worker, "lease ran out; job taken back");
                     app.metrics.lease_expired(worker);
@@ -268,7 +268,7 @@ pub(super) async fn run_process(
     let app: Shared = Arc::new(App::new(cfg, jobs, files));
     // Leases taken back at start count as those the lease task takes back:
     // a process restarted while another's worker lay dead found its lease.
-    for job in reclaimed.requeued.iter().chain(&reclaimed.failed) {
+    for job in reclaimed.jobs() {
         app.metrics
             .lease_expired(job.worker.as_deref().unwrap_or(""));
     }

@@ -184,6 +184,13 @@ pub struct Reclaimed {
     pub failed: Vec<Job>,
 }
 
+impl Reclaimed {
+    /// Every job taken back, re-queued or failed.
+    pub fn jobs(&self) -> impl Iterator<Item = &Job> {
+        self.requeued.iter().chain(&self.failed)
+    }
+}
+
 /// What [`JobStore::listen`] reports.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum StoreEvent {
