@@ -637,41 +637,37 @@ fn solve_n<const C: usize>(
     x0: Vec<f64>,
 ) -> Result<(Vec<f64>, usize), SolveError> {
     let ch = C;
-    // The exact block needs only the fine matrix: it is factored beside the
-    // levels' construction (which takes about as much longer as the join
-    // below gets shorter), so that the first cycle's way down, beside the
-    // coarsest factorisation, does not wait for it. (Without a level below
-    // the fine one there is no smoother to use it.)
+    // The hierarchy's construction keeps both threads busy on its own; the
+    // two factorisations are each one thread's work where the matrix is one
+    // piece (a many-seam atlas). So the levels come first, then the coarsest
+    // level is factored on one thread while the other factors the exact
+    // block and takes CG as far as the coarsest solve of its first cycle,
+    // and makes CG's search direction. (Beside the levels' construction, the
+    // exact block left the coarsest factorisation alone at the end, one
+    // thread idle for most of it: blub_atlas level 0, 0.4–0.7 s.) Split by
+    // connected piece, the factorisations take the other thread too once
+    // its work is done (Fox: four parts, 31 522 + 8 664 + 2 687 + 25 745
+    // unknowns). Without a level below the fine one there is no smoother
+    // to use the exact block.
     let exact = exact_rows(&nodes);
     let block = match exact.is_empty() || is_coarsest(nodes.len(), exact.len()) {
         true => None,
         false => Some(fine.submatrix(&exact)?),
     };
-    let (levels, block) = rayon::join(
-        || Hierarchy::new(fine, nodes, exact),
+    let (mut m, last) = Hierarchy::new(fine, nodes, exact)?;
+    let t = std::time::Instant::now();
+    let n = m.fine.n();
+    let (coarsest, start) = rayon::join(
+        || BlockPart::split(last),
         || {
             let tb = std::time::Instant::now();
-            let parts = block.map_or(Ok(Vec::new()), BlockPart::split);
+            m.exact_block = block.map_or(Ok(Vec::new()), BlockPart::split)?;
             tracing::debug!(
                 rss_mb = crate::heap::resident_mb(),
                 elapsed_ms = tb.elapsed().as_millis() as u64,
                 "exact block factored"
             );
-            parts
-        },
-    );
-    let (mut m, last) = levels?;
-    m.exact_block = block?;
-    let t = std::time::Instant::now();
-    // The coarsest factorisation (its ordering and its numeric phase) runs on
-    // one thread; the other takes CG as far as the coarsest solve of its
-    // first cycle, and makes CG's search direction. Split by connected piece,
-    // the factorisation takes the second thread too once that is done (Fox:
-    // four parts, 31 522 + 8 664 + 2 687 + 25 745 unknowns).
-    let n = m.fine.n();
-    let (coarsest, start) = rayon::join(
-        || BlockPart::split(last),
-        || {
+            let m = &m;
             let bb = dots::<C>(&b, &b);
             let mut r = b;
             m.fine.residual_in_place(&mut r, &x0, ch);
