@@ -15,7 +15,7 @@ use crate::bc1::punch::punch_through;
 use crate::bc1::seam_aware::{optimise, Problem, SeamAwareOptions};
 use crate::bc1::{self, Block};
 use crate::model::{MeshEdges, SeamSet, Texture, TextureBinding, UvTriangle};
-use crate::seam::charts::{harmed, Charts, HARM_PSNR_DB};
+use crate::seam::charts::{harmed, ChartLabels, Charts, HARM_PSNR_DB};
 use crate::seam::classify::{classify, ClassifyOptions, SeamVerdicts};
 use crate::seam::erase::{
     erase_within, EraseOptions, EraseStats, Erased, Mode, BAND_MARGIN, MIP_BAND_MARGIN,
@@ -25,6 +25,22 @@ use crate::seam::metric::seam_points_texel_length;
 use crate::seam::padding::pad_left_seams;
 use crate::seam::quadrature::QuadPoint;
 use crate::seam::{colour_channels, TexelClasses, TexelGrid};
+
+/// What every level of a texture reads of its mesh, whatever the level's
+/// size: the welded edges, paired, and the triangles' charts. Found once,
+/// before level 0; the mip chain would otherwise wait for both at each level.
+pub(super) struct TextureMesh {
+    pub(super) edges: MeshEdges,
+    charts: ChartLabels,
+}
+
+impl TextureMesh {
+    pub(super) fn new(triangles: &[UvTriangle]) -> Self {
+        let (edges, charts) =
+            rayon::join(|| MeshEdges::new(triangles), || ChartLabels::new(triangles));
+        TextureMesh { edges, charts }
+    }
+}
 
 /// One mip level of one texture, seam-erased.
 pub(super) struct ErasedLevel {
@@ -67,7 +83,7 @@ pub(super) enum Rung {
 
 pub(super) fn erase_level(
     b: &TextureBinding,
-    edges: &MeshEdges,
+    mesh: &TextureMesh,
     tex: &Texture,
     opts: &ProcessOptions,
     erase_alpha: bool,
@@ -81,8 +97,8 @@ pub(super) fn erase_level(
     };
     let compared = colour_channels(tex.channels);
     let t = Instant::now();
-    let seams = edges.seams(tex.width, tex.height);
-    let charts = Charts::new(&grid, &b.triangles);
+    let seams = mesh.edges.seams(tex.width, tex.height);
+    let charts = Charts::labelled(&grid, &b.triangles, &mesh.charts);
     let mut verdicts = if opts.erase_all {
         SeamVerdicts::all_closed(&seams)
     } else {

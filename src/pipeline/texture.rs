@@ -18,7 +18,7 @@ use super::figures::{Figures, Measured};
 use super::file::{regular_file, texture_file, Shipped};
 use super::level::{
     encode_level, encode_regular, encode_seam_aware, erase_level, rgb, EncodedLevel, ErasedLevel,
-    Rung,
+    Rung, TextureMesh,
 };
 use super::measure::Measure;
 use super::view_files;
@@ -31,7 +31,7 @@ use crate::bc1::alpha::decode_alpha_image;
 use crate::bc1::dds::MipLevel;
 use crate::bc1::{self, Decoder};
 use crate::mips;
-use crate::model::{MeshEdges, Texture, TextureBinding};
+use crate::model::{Texture, TextureBinding};
 use crate::picture::{job_versions, seams_png, SeamPicture};
 use crate::resize::SizeChange;
 use crate::seam::{colour_channels, SeamMetric};
@@ -89,8 +89,8 @@ pub(super) struct Erased<'a> {
     /// The texture brought to the size it is processed at, when it was.
     fitted: Option<(TextureBinding, SizeChange)>,
     plan: Option<AlphaPlan>,
-    /// The mesh's edges, paired once for every level's seams.
-    edges: MeshEdges,
+    /// The mesh's edges and charts, found once for every level.
+    mesh: TextureMesh,
     level0: ErasedLevel,
     started: Instant,
     erased_at: Instant,
@@ -120,11 +120,11 @@ pub(super) fn erase_texture<'a>(
     let _guard = span.enter();
     let plan = alpha::plan(b, opts.alpha, opts.format);
     let t = Instant::now();
-    let edges = MeshEdges::new(&b.triangles);
+    let mesh = TextureMesh::new(&b.triangles);
     let weld_ms = ms_since(t);
     let mut level0 = erase_level(
         b,
-        &edges,
+        &mesh,
         &b.texture,
         opts,
         plan.is_some_and(|p| p.erase),
@@ -143,7 +143,7 @@ pub(super) fn erase_texture<'a>(
         original,
         fitted,
         plan,
-        edges,
+        mesh,
         level0,
         started,
         erased_at: Instant::now(),
@@ -537,7 +537,7 @@ impl Beside {
         opts: &ProcessOptions,
     ) -> Result<Beside, PipelineError> {
         let (b, level0) = (texture.binding(), &texture.level0);
-        let (edges, plan) = (&texture.edges, texture.plan.as_ref());
+        let (mesh, plan) = (&texture.mesh, texture.plan.as_ref());
         let tex = &b.texture;
         // The mip chain is the longest of these: it starts first.
         let (smaller, (png, input, erased, alpha, png_ms, metrics_ms)) = rayon::join(
@@ -545,7 +545,7 @@ impl Beside {
                 let t = Instant::now();
                 let smaller = if opts.mips && opts.format.compressed() {
                     let count = mips::chain_len(tex.width, tex.height);
-                    smaller_levels(b, edges, &level0.float, 1, count, opts, plan)
+                    smaller_levels(b, mesh, &level0.float, 1, count, opts, plan)
                 } else {
                     Ok(Vec::new())
                 };
@@ -591,7 +591,7 @@ impl Beside {
 /// beside the erasure of the levels below it, which does not need it.
 fn smaller_levels(
     b: &TextureBinding,
-    edges: &MeshEdges,
+    mesh: &TextureMesh,
     above: &Texture,
     k: usize,
     count: usize,
@@ -604,7 +604,7 @@ fn smaller_levels(
     let filtered = mips::downsample(above, b.wrap_s, b.wrap_t);
     let level = erase_level(
         b,
-        edges,
+        mesh,
         &filtered,
         opts,
         plan.is_some_and(|p| p.erase),
@@ -616,7 +616,7 @@ fn smaller_levels(
     // (the other way round, the next level's erasure waited for this one's
     // seam-aware search whenever level 0's encoding held the other thread).
     let (below, enc) = rayon::join(
-        || smaller_levels(b, edges, &level.float, k + 1, count, opts, plan),
+        || smaller_levels(b, mesh, &level.float, k + 1, count, opts, plan),
         || encode_mip(b, &level, opts, plan),
     );
     let ((shipped, encode_ms, seam_aware_ms), mut below) = (enc?, below?);

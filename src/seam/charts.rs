@@ -33,10 +33,19 @@ pub struct Charts {
     pub count: usize,
 }
 
-impl Charts {
-    pub const NONE: u32 = u32::MAX;
+/// The chart of each triangle: which triangles share UV edges, whatever the
+/// texture's size. Found once per texture and read by every mip level (a
+/// hash of every UV edge: 14 000 triangles take a few milliseconds, a
+/// dozen times over down a mip chain that waits for each).
+#[derive(Clone, Debug, Default)]
+pub struct ChartLabels {
+    /// Chart of each triangle, numbered `0..count` in order of first appearance.
+    of_triangle: Vec<u32>,
+    count: usize,
+}
 
-    pub fn new(grid: &TexelGrid, triangles: &[UvTriangle]) -> Self {
+impl ChartLabels {
+    pub fn new(triangles: &[UvTriangle]) -> Self {
         let mut parent: Vec<u32> = (0..triangles.len() as u32).collect();
         let mut first_with_edge: HashMap<[[i64; 2]; 2], u32> = HashMap::new();
         for (ti, t) in triangles.iter().enumerate() {
@@ -60,6 +69,23 @@ impl Charts {
                 *number.entry(root).or_insert(next)
             })
             .collect();
+        ChartLabels {
+            of_triangle,
+            count: number.len(),
+        }
+    }
+}
+
+impl Charts {
+    pub const NONE: u32 = u32::MAX;
+
+    pub fn new(grid: &TexelGrid, triangles: &[UvTriangle]) -> Self {
+        Self::labelled(grid, triangles, &ChartLabels::new(triangles))
+    }
+
+    /// The charts of `labels`, found for `triangles`, on `grid`'s texels.
+    pub fn labelled(grid: &TexelGrid, triangles: &[UvTriangle], labels: &ChartLabels) -> Self {
+        let of_triangle = labels.of_triangle.clone();
         // Where triangles overlap the last one wins, that is the highest
         // numbered: rasterised side by side, each texel keeps the largest
         // number that reaches it, whatever order they land in.
@@ -82,7 +108,7 @@ impl Charts {
         Charts {
             of_triangle,
             of_texel,
-            count: number.len(),
+            count: labels.count,
         }
     }
 
