@@ -28,6 +28,15 @@ pub struct Weights {
     pub grad: f64,
 }
 
+impl Weights {
+    /// A lower bound on the eigenvalues of the system [`assemble`] makes:
+    /// every row's diagonal holds its texel's anchor, and every other term
+    /// is a square, positive semi-definite.
+    pub fn floor(&self) -> f64 {
+        self.change.min(self.free_anchor)
+    }
+}
+
 /// A seam block: up to eight texels and their dense coupling.
 struct Block {
     texels: [u32; 8],

@@ -665,7 +665,7 @@ fn solve_band(
     let x = match placed {
         None => Cholesky::new(&a.to_csr()?.into_faer())?.solve_interleaved(&b, ch),
         Some((nodes, x0)) => {
-            let (x, iterations) = multigrid::solve(a, nodes, b, ch, x0)?;
+            let (x, iterations) = multigrid::solve(a, nodes, b, ch, x0, weights.floor())?;
             tracing::debug!(
                 rss_mb = crate::heap::resident_mb(),
                 elapsed_ms = t0.elapsed().as_millis() as u64,
