@@ -934,50 +934,50 @@ mod tests {
         identical(&closed2.to_csr().unwrap(), &fast2);
     }
 
+    /// `problem(120, 80)`, large enough for three levels, with a solution
+    /// and its right-hand side.
+    fn solved_problem() -> (SymCsr, Vec<Node>, Vec<f64>, Vec<f64>) {
+        let (a, nodes) = problem(120, 80);
+        let x: Vec<f64> = (0..a.n * 3).map(|i| (i as f64 * 0.61).sin()).collect();
+        let mut b = vec![0.0; a.n * 3];
+        a.apply(&x, &mut b, 3);
+        (a, nodes, x, b)
+    }
+
+    fn largest_difference(x: &[f64], y: &[f64]) -> f64 {
+        x.iter()
+            .zip(y)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max)
+    }
+
     #[test]
     fn multigrid_cg_solves_the_system() {
-        // Large enough for three levels.
-        let (a, nodes) = problem(120, 80);
-        let n = a.n;
-        let x_true: Vec<f64> = (0..n * 3).map(|i| (i as f64 * 0.61).sin()).collect();
-        let mut b = vec![0.0; n * 3];
-        a.apply(&x_true, &mut b, 3);
+        let (a, nodes, x_true, b) = solved_problem();
         let fine = StencilMatrix::from_csr(&a, -1.0).unwrap();
         assert!(fine.stored_rows() > 0 && fine.stored_rows() < 20);
         let (m, _) = Hierarchy::new(fine, nodes.clone(), exact_rows(&nodes)).unwrap();
         assert!(m.transfers.len() >= 2, "{} levels", m.transfers.len() + 1);
         let fine = StencilMatrix::from_csr(&a, -1.0).unwrap();
-        let (x, _) = solve(fine, nodes, b, 3, vec![0.0; n * 3], MASS).unwrap();
-        let worst = x
-            .iter()
-            .zip(&x_true)
-            .map(|(a, b)| (a - b).abs())
-            .fold(0.0, f64::max);
+        let (x, _) = solve(fine, nodes, b, 3, vec![0.0; a.n * 3], MASS).unwrap();
+        let worst = largest_difference(&x, &x_true);
         // CG stops once its estimated remaining error is below 1e-4 of a level.
         assert!(worst < 1e-5, "{worst}");
     }
 
     #[test]
     fn a_guess_that_solves_the_system_is_returned_untouched() {
-        let (a, nodes) = problem(120, 80);
-        let n = a.n;
-        let x_true: Vec<f64> = (0..n * 3).map(|i| (i as f64 * 0.61).sin()).collect();
-        let mut b = vec![0.0; n * 3];
-        a.apply(&x_true, &mut b, 3);
+        let (a, nodes, x_true, b) = solved_problem();
         let fine = || StencilMatrix::from_csr(&a, -1.0).unwrap();
         let (x, iterations) =
             solve(fine(), nodes.clone(), b.clone(), 3, x_true.clone(), MASS).unwrap();
         assert_eq!((iterations, &x), (0, &x_true));
         // One value off by a thousandth of a level is a residual CG must remove.
         let mut near = x_true.clone();
-        near[n / 2 * 3] += 1e-3 / 255.0;
+        near[a.n / 2 * 3] += 1e-3 / 255.0;
         let (x, iterations) = solve(fine(), nodes, b, 3, near, MASS).unwrap();
         assert!(iterations >= 1);
-        let worst = x
-            .iter()
-            .zip(&x_true)
-            .map(|(a, b)| (a - b).abs())
-            .fold(0.0, f64::max);
+        let worst = largest_difference(&x, &x_true);
         assert!(worst < 1e-5, "{worst}");
     }
 }
