@@ -631,7 +631,7 @@ fn dots<const C: usize>(u: &[f64], v: &[f64]) -> [f64; 4] {
 /// hierarchy built for it, from the guess `x0`. Returns x and the iteration
 /// count (0 where `x0` is already within the tolerance). `floor` is a lower
 /// bound on A's eigenvalues: the erasure's smallest anchor weight, as A is
-/// the diagonal of anchors plus squared differences.
+/// the diagonal of anchors plus squares (gradients, seam sums, C1 terms).
 ///
 /// `b` is taken by value and becomes the residual: on a 2048² band each
 /// vector is about 50 MB, and each megabyte a process touches for the first
